@@ -1,0 +1,55 @@
+# HAUWM: `make demo` and `make test` install into .venv first when needed.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DEMO := demo-out
+# Headless MuJoCo rendering on a CPU box (docs/finetuning.md); a user's own setting wins.
+export MUJOCO_GL ?= osmesa
+export PYOPENGL_PLATFORM ?= osmesa
+# Debian packages the project needs: OSMesa for headless MuJoCo rendering.
+APT_PACKAGES := libosmesa6 libgl1 libegl1
+
+.PHONY: install demo test test-all bench clean system-deps
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(MAKE) --no-print-directory system-deps
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[test]"
+	touch $(STAMP)
+
+system-deps:
+	@missing=$$(for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing Debian packages: $$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
+	  else \
+	    echo "warning: missing Debian packages ($$missing); MuJoCo rendering needs them: sudo apt-get install $$missing"; \
+	  fi; \
+	fi
+
+demo: install
+	rm -rf $(DEMO)
+	$(BIN)/hauwm shards sample-data --out $(DEMO)/ssv2 --clips 96 --with-broken
+	$(BIN)/hauwm shards build --annotations $(DEMO)/ssv2/annotations --videos $(DEMO)/ssv2/videos \
+	    --split train --split validation --out $(DEMO)/shards --clips-per-shard 16 --workers 2 --max-error-rate 0.2
+	$(BIN)/hauwm shards inspect $(DEMO)/shards --verify
+	$(BIN)/hauwm shards preview $(DEMO)/shards --out $(DEMO)/preview.png
+	@echo "demo: shards in $(DEMO)/shards, preview at $(DEMO)/preview.png"
+
+test: install
+	$(BIN)/python -m pytest
+
+test-all: install
+	$(BIN)/python -m pytest -m "slow or not slow"
+
+bench: install
+	@for script in bench/bench_*.py; do echo "== $$script"; $(BIN)/python $$script || exit 1; done
+
+clean:
+	rm -rf $(DEMO) runs .pytest_cache

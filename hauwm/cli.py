@@ -1,0 +1,40 @@
+"""The `hauwm` command: dispatches to each stage's own CLI, importing only the stage asked for.
+
+    hauwm shards   ...   data_pipeline.cli   (SSv2 -> WebDataset shards, inspect, preview, sample data)
+    hauwm pretrain ...   model.cli           (LightningCLI fit, export, analyze)
+    hauwm finetune ...   finetune.cli        (online RL from the frozen export)
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+STAGES = {
+    "shards": ("data_pipeline.cli", "shard SSv2 into WebDataset tars, inspect and preview them"),
+    "pretrain": ("model.cli", "pre-train the ensemble RSSM (fit), export it, analyze it"),
+    "finetune": ("finetune.cli", "train an agent on a control task from the frozen export"),
+}
+
+
+def usage() -> str:
+    lines = ["usage: hauwm {shards,pretrain,finetune} ...", "", "stages:"]
+    lines += [f"  {name:<9} {help_}" for name, (_, help_) in STAGES.items()]
+    lines += ["", "Run `hauwm STAGE --help` for the stage's own flags."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(usage())
+        return 0
+    if argv[0] not in STAGES:
+        print(f"hauwm: unknown stage {argv[0]!r}\n\n{usage()}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(STAGES[argv[0]][0])
+    return module.main(argv[1:]) or 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
