@@ -1,0 +1,263 @@
+"""`hauwm shards build`: SSv2 (label files + webm) → WebDataset shards, resumable and reproducible.
+
+Each split's clip list (in the label file's order, cut to `--max-clips`) is cut into shards of
+`--clips-per-shard` entries, so shard `{split}-{NNNNNN}` always covers the same clips whatever fails,
+whatever `--workers`, and whichever `--part` builds it. Clips that fail go to the shard's error list,
+never into the tar, which is why shards are uneven. A shard is written to `.NAME.tar.partial`,
+renamed to `NAME.tar` when complete, and its stats file `NAME.stats.json` is written last; so after a
+SIGKILL at any moment, a re-run keeps the shards whose stats and tar check out (size and SHA-256)
+and rebuilds the rest, byte-identically. When every shard of every part is present, the build writes
+`errors.jsonl` and then `manifest.json` (settings, counts, per-shard checksums, version).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+from .shard_format import ENCODINGS, FORMAT_VERSION, add_clip, open_writer
+from .ssv2 import ClipRecord, annotation_path, load_labels, load_split
+from .workers import ClipResult, DecodePool, DecodeSettings
+
+SETTINGS_FILE = "build.json"
+MANIFEST_FILE = "manifest.json"
+ERRORS_FILE = "errors.jsonl"
+
+
+class BuildError(Exception):
+    """A problem with the build's inputs or output directory; the message says what to do."""
+
+
+@dataclass
+class BuildConfig:
+    annotations: Path
+    videos: Path
+    out: Path
+    splits: list[str] = field(default_factory=lambda: ["train", "validation"])
+    size: int = 64
+    resize: str = "squash"
+    encoding: str = "jpeg"
+    quality: int = 90
+    clips_per_shard: int = 256
+    min_frames: int = 8
+    max_clips: int | None = None
+    workers: int = 1
+    part: int = 0
+    num_parts: int = 1
+    max_error_rate: float = 0.01
+    timeout: float = 30.0
+
+
+@dataclass
+class ShardPlan:
+    split: str
+    index: int
+    records: list[ClipRecord]
+
+    @property
+    def name(self) -> str:
+        return f"{self.split}-{self.index:06d}"
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _write_json_atomic(path: Path, data, lines: list[dict] | None = None) -> None:
+    partial = path.with_name(f".{path.name}.partial")
+    text = json.dumps(data, indent=1, sort_keys=True) + "\n" if lines is None else \
+        "".join(json.dumps(line, sort_keys=True) + "\n" for line in lines)
+    partial.write_text(text)
+    os.replace(partial, path)
+
+
+def settings_of(config: BuildConfig) -> dict:
+    """Everything the shards' bytes depend on; a resume must match it exactly."""
+    names = ["labels", *config.splits]
+    return {
+        "format_version": FORMAT_VERSION, "splits": list(config.splits), "size": config.size,
+        "resize": config.resize, "encoding": config.encoding, "quality": config.quality,
+        "clips_per_shard": config.clips_per_shard, "min_frames": config.min_frames, "max_clips": config.max_clips,
+        "annotations_sha256": {name: _sha256(annotation_path(config.annotations, name)) for name in names
+                               if name != "test" or annotation_path(config.annotations, name).is_file()},
+    }
+
+
+def plan_shards(config: BuildConfig) -> list[ShardPlan]:
+    labels = load_labels(config.annotations) if set(config.splits) - {"test"} else {}
+    plans = []
+    for split in config.splits:
+        records = load_split(config.annotations, split, labels)[: config.max_clips]
+        step = config.clips_per_shard
+        plans += [ShardPlan(split, i, records[start:start + step]) for i, start in enumerate(range(0, len(records), step))]
+    return plans
+
+
+def check_settings(out: Path, settings: dict) -> None:
+    """Record the settings in a fresh directory; refuse a resume whose settings differ."""
+    path = out / SETTINGS_FILE
+    if path.is_file():
+        previous = json.loads(path.read_text())
+        if previous != settings:
+            changed = sorted(key for key in settings.keys() | previous.keys() if settings.get(key) != previous.get(key))
+            details = "; ".join(f"{key}: was {previous.get(key)!r}, now {settings.get(key)!r}" for key in changed)
+            raise BuildError(f"{out} holds shards built with other settings ({details}). Re-run with the "
+                             f"original settings to resume, or build into a new --out directory.")
+    elif any(out.glob("*.tar")):
+        raise BuildError(f"{out} holds shards but no {SETTINGS_FILE}; build into a new --out directory.")
+    else:
+        _write_json_atomic(path, settings)
+
+
+def settings_digest(settings: dict) -> str:
+    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def verified_stats(out: Path, plan: ShardPlan, digest: str, check_hash: bool = True) -> dict | None:
+    """The shard's stats if its stats file and tar check out, else None (the shard must be built)."""
+    stats_path, tar_path = out / f"{plan.name}.stats.json", out / f"{plan.name}.tar"
+    try:
+        stats = json.loads(stats_path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if (stats.get("settings_digest") != digest or stats.get("planned") != [r.id for r in plan.records]
+            or not tar_path.is_file() or tar_path.stat().st_size != stats.get("bytes")):
+        return None
+    if check_hash and _sha256(tar_path) != stats.get("sha256"):
+        return None
+    return stats
+
+
+def _error_entry(config: BuildConfig, record: ClipRecord, reason: str, detail: str) -> dict:
+    return {"id": record.id, "split": record.split, "path": str(config.videos / f"{record.id}.webm"),
+            "reason": reason, "detail": detail}
+
+
+def _metadata(record: ClipRecord, result: ClipResult) -> dict:
+    return {"id": record.id, "caption": record.caption, "template": record.template,
+            "class_index": record.class_index, "num_frames": result.num_frames,
+            "source_width": result.source_width, "source_height": result.source_height, "fps": result.fps}
+
+
+def write_shard(config: BuildConfig, plan: ShardPlan, results, digest: str, progress: tqdm) -> dict:
+    """Write one shard from the results of its valid clips, in order; returns its stats."""
+    extension = ENCODINGS[config.encoding]
+    partial = config.out / f".{plan.name}.tar.partial"
+    errors, frame_counts, clips, frames = [], Counter(), 0, 0
+    with open(partial, "wb") as file, open_writer(file) as tar:
+        for record in plan.records:
+            if not record.id or any(c in record.id for c in "./\\"):
+                errors.append(_error_entry(config, record, "invalid-id", "tar keys must not contain '.', '/' or '\\'"))
+                continue
+            result = next(results)
+            progress.update(1)
+            if result.reason:
+                errors.append(_error_entry(config, record, result.reason, result.detail))
+                continue
+            add_clip(tar, _metadata(record, result), result.frames_member, extension)
+            clips, frames = clips + 1, frames + result.num_frames
+            frame_counts[str(result.num_frames)] += 1
+    tar_path = config.out / f"{plan.name}.tar"
+    stats = {"name": plan.name, "split": plan.split, "index": plan.index, "settings_digest": digest,
+             "planned": [r.id for r in plan.records], "clips": clips, "frames": frames,
+             "bytes": partial.stat().st_size, "sha256": _sha256(partial),
+             "frame_counts": dict(sorted(frame_counts.items(), key=lambda kv: int(kv[0]))), "errors": errors}
+    os.replace(partial, tar_path)
+    _write_json_atomic(config.out / f"{plan.name}.stats.json", stats)  # last: marks the shard complete
+    return stats
+
+
+def assemble_manifest(config: BuildConfig, settings: dict, plans: list[ShardPlan], digest: str) -> dict | None:
+    """Write errors.jsonl and manifest.json once every shard of every part is present; else None."""
+    all_stats = [verified_stats(config.out, plan, digest, check_hash=False) for plan in plans]
+    if any(stats is None for stats in all_stats):
+        return None
+    splits: dict[str, dict] = {}
+    errors = []
+    for stats in all_stats:
+        split = splits.setdefault(stats["split"], {"clips": 0, "frames": 0, "bytes": 0, "errors": 0, "shards": []})
+        split["clips"] += stats["clips"]
+        split["frames"] += stats["frames"]
+        split["bytes"] += stats["bytes"]
+        split["errors"] += len(stats["errors"])
+        split["shards"].append({key: stats[key] for key in ("clips", "frames", "bytes", "sha256", "frame_counts")}
+                               | {"name": f"{stats['name']}.tar"})
+        errors += stats["errors"]
+    manifest = {"format_version": FORMAT_VERSION, "settings": settings, "splits": splits,
+                "errors": {"total": len(errors), "by_reason": dict(sorted(Counter(e["reason"] for e in errors).items()))}}
+    _write_json_atomic(config.out / ERRORS_FILE, None, lines=errors)
+    _write_json_atomic(config.out / MANIFEST_FILE, manifest)
+    return manifest
+
+
+def validate(config: BuildConfig) -> None:
+    if not config.videos.is_dir():
+        raise BuildError(f"--videos {config.videos}: not a directory (it should hold <id>.webm files)")
+    if not 0 <= config.part < config.num_parts:
+        raise BuildError(f"--part {config.part} must lie in 0..{config.num_parts - 1} (--num-parts {config.num_parts})")
+    for flag, value in (("--size", config.size), ("--clips-per-shard", config.clips_per_shard),
+                        ("--workers", config.workers), ("--min-frames", config.min_frames)):
+        if value < 1:
+            raise BuildError(f"{flag} must be at least 1, got {value}")
+    if not 1 <= config.quality <= 100:
+        raise BuildError(f"--quality must lie in 1..100, got {config.quality}")
+
+
+def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
+    """Build (or resume) this part's shards; returns the manifest (None until all parts are done) and
+    the exit status (1 when this part's error rate exceeds --max-error-rate)."""
+    validate(config)
+    config.out.mkdir(parents=True, exist_ok=True)
+    settings = settings_of(config)
+    check_settings(config.out, settings)
+    digest = settings_digest(settings)
+    plans = plan_shards(config)
+    mine = [plan for i, plan in enumerate(plans) if i % config.num_parts == config.part]
+    kept = {plan.name: stats for plan in mine if (stats := verified_stats(config.out, plan, digest)) is not None}
+    todo = [plan for plan in mine if plan.name not in kept]
+    valid = [r for plan in todo for r in plan.records if r.id and not any(c in r.id for c in "./\\")]
+    log(f"shards: {len(plans)} in all, {len(mine)} in part {config.part}/{config.num_parts}, "
+        f"{len(kept)} already complete, {len(todo)} to build ({len(valid)} clips, {config.workers} workers)")
+    started = time.monotonic()
+    built = []
+    decode = DecodeSettings(config.size, config.resize, config.min_frames, config.encoding, config.quality)
+    with DecodePool(config.workers, decode, config.timeout) as pool, \
+            tqdm(total=len(valid), desc="build", unit="clip", disable=None) as progress:
+        results = pool.imap(config.videos / f"{record.id}.webm" for record in valid)
+        for plan in todo:
+            built.append(write_shard(config, plan, results, digest, progress))
+            progress.set_postfix(errors=sum(len(stats["errors"]) for stats in built))
+    elapsed = time.monotonic() - started
+    part_stats = list(kept.values()) + built
+    total = sum(len(stats["planned"]) for stats in part_stats)
+    failed = [e for stats in part_stats for e in stats["errors"]]
+    new_frames = sum(stats["frames"] for stats in built)
+    log(f"built {len(built)} shards in {elapsed:.1f} s: {len(valid) / max(elapsed, 1e-9):.1f} clips/s, "
+        f"{new_frames / max(elapsed, 1e-9):.0f} frames/s")
+    log(f"part {config.part}: {total - len(failed)} clips in shards, {len(failed)} failed "
+        f"({', '.join(f'{r}: {n}' for r, n in sorted(Counter(e['reason'] for e in failed).items())) or 'none'})")
+    manifest = assemble_manifest(config, settings, plans, digest)
+    if manifest is None:
+        log(f"other parts are not done yet: re-run any part after they finish to write {MANIFEST_FILE}")
+    else:
+        for split, counts in manifest["splits"].items():
+            log(f"{split}: {counts['clips']} clips, {counts['frames']} frames, {len(counts['shards'])} shards, "
+                f"{counts['bytes'] / 1e6:.1f} MB, {counts['errors']} errors")
+        log(f"wrote {config.out / MANIFEST_FILE} and {config.out / ERRORS_FILE}")
+    rate = len(failed) / max(total, 1)
+    if rate > config.max_error_rate:
+        log(f"error: {len(failed)} of {total} clips failed ({rate:.1%}), more than --max-error-rate "
+            f"{config.max_error_rate:g}; see {config.out / ERRORS_FILE}" + ("" if manifest else " (once all parts are done)"))
+        return manifest, 1
+    return manifest, 0

@@ -1,0 +1,119 @@
+"""`hauwm shards {build,inspect,preview,sample-data}`: the data pipeline's command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .decode import RESIZE_MODES
+from .shard_format import ENCODINGS
+from .ssv2 import SPLITS, AnnotationError
+
+
+def _build(args: argparse.Namespace) -> int:
+    from .build import BuildConfig, BuildError, build
+
+    config = BuildConfig(
+        annotations=args.annotations, videos=args.videos, out=args.out, splits=args.split or ["train", "validation"],
+        size=args.size, resize=args.resize, encoding=args.encoding, quality=args.quality,
+        clips_per_shard=args.clips_per_shard, min_frames=args.min_frames, max_clips=args.max_clips,
+        workers=args.workers, part=args.part, num_parts=args.num_parts, max_error_rate=args.max_error_rate,
+        timeout=args.timeout)
+    try:
+        _, status = build(config)
+    except (BuildError, AnnotationError) as error:
+        print(f"hauwm shards build: {error}", file=sys.stderr)
+        return 2
+    return status
+
+
+def _inspect(args: argparse.Namespace) -> int:
+    from .inspect_shards import ShardDirError, inspect_shards
+
+    try:
+        return inspect_shards(args.dir, verify=args.verify)
+    except ShardDirError as error:
+        print(f"hauwm shards inspect: {error}", file=sys.stderr)
+        return 2
+
+
+def _preview(args: argparse.Namespace) -> int:
+    from .inspect_shards import ShardDirError
+    from .preview import write_preview
+
+    try:
+        write_preview(args.dir, args.out, split=args.split, clips=args.clips, length=args.length,
+                      k_max=args.k_max, seed=args.seed)
+    except ShardDirError as error:
+        print(f"hauwm shards preview: {error}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _sample_data(args: argparse.Namespace) -> int:
+    from .sample_data import make_sample_data
+
+    broken = make_sample_data(args.out, args.clips, with_broken=args.with_broken, seed=args.seed, workers=args.workers)
+    print(f"wrote {args.clips} clips" + (f" and {len(broken)} broken entries" if broken else "") +
+          f" to {args.out} (annotations/ and videos/)")
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    root = argparse.ArgumentParser(prog="hauwm shards", description="SSv2 → WebDataset shards, and tools around them.")
+    commands = root.add_subparsers(dest="command", required=True)
+
+    build = commands.add_parser("build", help="decode an SSv2 tree into 64×64 WebDataset shards (resumable)")
+    build.add_argument("--annotations", type=Path, required=True, help="directory with something-something-v2-*.json")
+    build.add_argument("--videos", type=Path, required=True, help="directory with <id>.webm")
+    build.add_argument("--split", action="append", choices=SPLITS,
+                       help="split to build; repeatable (default: train and validation)")
+    build.add_argument("--out", type=Path, required=True, help="output directory for shards, manifest, errors")
+    build.add_argument("--size", type=int, default=64, help="frame side in pixels (default 64)")
+    build.add_argument("--resize", choices=RESIZE_MODES, default="squash",
+                       help="squash the whole frame to a square, or crop the centre square first (default squash)")
+    build.add_argument("--encoding", choices=list(ENCODINGS), default="jpeg",
+                       help="frames as per-frame JPEGs (default) or one raw uint8 array per clip")
+    build.add_argument("--quality", type=int, default=90, help="JPEG quality for --encoding jpeg (default 90)")
+    build.add_argument("--clips-per-shard", type=int, default=256, help="label-file entries per shard (default 256)")
+    build.add_argument("--min-frames", type=int, default=8, help="clips with fewer frames are errors (default 8)")
+    build.add_argument("--max-clips", type=int, default=None, help="use only the first N entries of each split")
+    build.add_argument("--workers", type=int, default=1, help="decoder processes (default 1)")
+    build.add_argument("--part", type=int, default=0, help="build only part I of the shards (0-based)")
+    build.add_argument("--num-parts", type=int, default=1, help="number of parts the shards are split into")
+    build.add_argument("--max-error-rate", type=float, default=0.01,
+                       help="exit non-zero when more than this fraction of clips fail (default 0.01)")
+    build.add_argument("--timeout", type=float, default=30.0, help="seconds one clip may take to decode (default 30)")
+    build.set_defaults(run=_build)
+
+    inspect = commands.add_parser("inspect", help="counts per split, frames, bytes, errors by reason")
+    inspect.add_argument("dir", type=Path, help="shard directory (with manifest.json)")
+    inspect.add_argument("--verify", action="store_true", help="re-check every shard against the manifest")
+    inspect.set_defaults(run=_inspect)
+
+    preview = commands.add_parser("preview", help="a PNG grid of sampled sequences, frames along the rows")
+    preview.add_argument("dir", type=Path, help="shard directory (with manifest.json)")
+    preview.add_argument("--out", type=Path, required=True, help="PNG file to write")
+    preview.add_argument("--split", default=None, help="split to show (default: the first in the manifest)")
+    preview.add_argument("--clips", type=int, default=8, help="rows (default 8)")
+    preview.add_argument("--length", type=int, default=8, help="frames per row, L (default 8)")
+    preview.add_argument("--k-max", type=int, default=5, help="largest gap K_max (default 5)")
+    preview.add_argument("--seed", type=int, default=0)
+    preview.set_defaults(run=_preview)
+
+    sample = commands.add_parser("sample-data", help="write the built-in stochastic-scene dataset in SSv2's format")
+    sample.add_argument("--out", type=Path, required=True, help="output directory (annotations/, videos/)")
+    sample.add_argument("--clips", type=int, default=96, help="number of good clips over all splits (default 96)")
+    sample.add_argument("--with-broken", action="store_true",
+                        help="add corrupt, truncated, empty, missing, too-short and non-video entries")
+    sample.add_argument("--seed", type=int, default=0)
+    sample.add_argument("--workers", type=int, default=2, help="processes rendering and encoding clips (default 2)")
+    sample.set_defaults(run=_sample_data)
+    return root
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(sys.argv[1:] if argv is None else argv)
+    return args.run(args)

@@ -1,0 +1,67 @@
+"""`ShardDataModule`: the shard loader as a LightningDataModule, and `SetEpoch`, the callback that
+reshuffles the shards every epoch (Lightning does not call `set_epoch` on an IterableDataset).
+
+Train: shards shuffled with `seed + epoch`, split by rank and worker, a shuffle buffer, and the same
+number of batches on every rank (see `loader.py`). Validation: a fixed order and a fixed seed, so
+every evaluation sees the same `val_batches` batches (rounded down to a multiple of the workers) with
+the same gaps, for the per-k metrics the model computes from `gaps`.
+
+    trainer = lightning.Trainer(callbacks=[SetEpoch()])
+    trainer.fit(model, datamodule=ShardDataModule("demo-out/shards", batch_size=8))
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import lightning
+
+from .loader import LoaderError, SequenceDataset, make_dataloader, read_manifest, shard_set
+
+
+class SetEpoch(lightning.Callback):
+    """Sets the train dataset's epoch at the start of each epoch, before the DataLoader starts its workers."""
+
+    def on_train_epoch_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
+        datamodule = trainer.datamodule
+        if isinstance(datamodule, ShardDataModule) and datamodule.train_set is not None:
+            datamodule.train_set.set_epoch(trainer.current_epoch)
+
+
+class ShardDataModule(lightning.LightningDataModule):
+    def __init__(self, shards: str, train_split: str = "train", val_split: str = "validation", batch_size: int = 32,
+                 seq_len: int = 16, k_max: int = 5, num_workers: int = 2, shuffle_buffer: int = 256, seed: int = 0,
+                 val_batches: int = 8, shard_url: str | None = None):
+        """`shards`: a shard directory (with manifest.json). `shard_url`: optional URL template for the tars,
+        e.g. `"pipe:aws s3 cp s3://bucket/shards/{name} -"`, with the manifest copied to `shards`."""
+        super().__init__()
+        self.save_hyperparameters()
+        self.train_set: SequenceDataset | None = None
+        self.val_set: SequenceDataset | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        hp = self.hparams
+        read_manifest(hp.shards)  # a clear error naming the directory and the build command
+        common = dict(batch_size=hp.batch_size, seq_len=hp.seq_len, k_max=hp.k_max, seed=hp.seed)
+        if stage in (None, "fit"):
+            self.train_set = SequenceDataset(shard_set(hp.shards, hp.train_split, hp.shard_url),
+                                             num_workers=hp.num_workers, shuffle=True,
+                                             shuffle_buffer=hp.shuffle_buffer, **common)
+        if stage in (None, "fit", "validate"):
+            val_shards = shard_set(hp.shards, hp.val_split, hp.shard_url)
+            world_size = self.trainer.world_size if self.trainer is not None else 1
+            usable = sum(n > 0 for n in val_shards.eligible(hp.seq_len))
+            workers = max(0, min(hp.num_workers, usable // max(1, world_size)))
+            if hp.val_batches < 1:
+                raise LoaderError(f"val_batches must be at least 1, got {hp.val_batches}")
+            self.val_set = SequenceDataset(val_shards, num_workers=workers, shuffle=False,
+                                           batches_per_worker=max(1, hp.val_batches // max(1, workers)), **common)
+
+    def train_dataloader(self):
+        if self.trainer is not None and not any(isinstance(c, SetEpoch) for c in self.trainer.callbacks):
+            warnings.warn("ShardDataModule: add data_pipeline.SetEpoch() to the Trainer's callbacks, or every "
+                          "epoch reads the shards in the same order", stacklevel=2)
+        return make_dataloader(self.train_set)
+
+    def val_dataloader(self):
+        return make_dataloader(self.val_set)

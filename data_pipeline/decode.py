@@ -1,0 +1,121 @@
+"""Decode one SSv2 clip once, check it for faults, and resize its frames to `size × size`.
+
+decord (one thread: VP9 WebM fails with its default of 0 threads) reads the clip frame by frame until
+the stream ends, so the frame count is the number of frames actually decoded (WebM stores none).
+Where decord cannot open a file, OpenCV tries. `fault_tol=0` makes decord raise instead of silently
+repeating frames on corrupt input; a clip that decodes to fewer frames than its container's duration
+declares is corrupt too (truncated, or garbage in the stream). Faults raise `ClipError(reason, detail)`,
+which the shard builder records in `errors.jsonl`; the per-clip timeout lives in `workers.py`.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+RESIZE_MODES = ("squash", "center-crop")
+REASONS = ("missing", "empty", "undecodable", "corrupt", "too-short", "timeout", "crashed")
+DECLARED_SLACK = 2  # frames a container's declared duration may exceed the decoded count by
+
+
+class ClipError(Exception):
+    """A clip that cannot go into a shard; `reason` is one of `REASONS`."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f"{reason}: {detail}")
+        self.reason, self.detail = reason, detail
+
+
+@dataclass
+class DecodedClip:
+    frames: np.ndarray  # uint8 [T, size, size, 3], RGB
+    source_width: int
+    source_height: int
+    fps: float
+    backend: str
+
+
+def resize_frame(frame: np.ndarray, size: int, mode: str) -> np.ndarray:
+    """`uint8 [H, W, 3]` → `uint8 [size, size, 3]`: squash the whole frame, or crop its centre square first."""
+    if mode == "center-crop":
+        height, width = frame.shape[:2]
+        side = min(height, width)
+        top, left = (height - side) // 2, (width - side) // 2
+        frame = frame[top:top + side, left:left + side]
+    elif mode != "squash":
+        raise ValueError(f"unknown resize mode {mode!r}; choose from {', '.join(RESIZE_MODES)}")
+    return cv2.resize(frame, (size, size), interpolation=cv2.INTER_AREA)
+
+
+def declared_frame_count(path: Path) -> int:
+    """The frame count the container's duration implies (0 when it declares none)."""
+    capture = cv2.VideoCapture(str(path))
+    try:
+        return max(0, int(round(capture.get(cv2.CAP_PROP_FRAME_COUNT)))) if capture.isOpened() else 0
+    finally:
+        capture.release()
+
+
+def _decode_decord(path: Path):
+    import decord
+
+    reader = decord.VideoReader(str(path), num_threads=1, fault_tol=0)
+    fps = float(reader.get_avg_fps())
+    while True:
+        try:
+            yield reader.next().asnumpy(), fps
+        except StopIteration:
+            return
+
+
+def _decode_opencv(path: Path):
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise ClipError("undecodable", "neither decord nor OpenCV can open the file")
+    fps = float(capture.get(cv2.CAP_PROP_FPS))
+    try:
+        while True:
+            ok, frame = capture.read()
+            if not ok:
+                return
+            yield frame[:, :, ::-1], fps  # BGR → RGB
+    finally:
+        capture.release()
+
+
+def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int = 1) -> DecodedClip:
+    """Decode every frame of `path`, resized; raise `ClipError` for any fault."""
+    path = Path(path)
+    if not path.is_file():
+        raise ClipError("missing", f"no file at {path}")
+    if os.path.getsize(path) == 0:
+        raise ClipError("empty", "the file has 0 bytes")
+    backend = "decord"
+    try:
+        frames_iter = _decode_decord(path)
+        first = next(frames_iter, None)
+    except Exception:  # decord raises bare RuntimeError/DECORDError on files it cannot open
+        backend = "opencv"
+        frames_iter = _decode_opencv(path)
+        first = next(frames_iter, None)
+    if first is None:
+        raise ClipError("empty", f"{backend} decoded no frames")
+    source_height, source_width = first[0].shape[:2]
+    fps = first[1]
+    resized = [resize_frame(first[0], size, resize)]
+    try:
+        resized += [resize_frame(frame, size, resize) for frame, _ in frames_iter]
+    except ClipError:
+        raise
+    except Exception as error:  # DECORDLimitReachedError: frames were recovered from corrupt data
+        raise ClipError("corrupt", f"{backend}: {str(error).strip().splitlines()[0][:200]}") from None
+    declared = declared_frame_count(path)
+    if declared and len(resized) + DECLARED_SLACK < declared:
+        raise ClipError("corrupt", f"decoded {len(resized)} of the {declared} frames the container declares")
+    if len(resized) < min_frames:
+        raise ClipError("too-short", f"{len(resized)} frames, fewer than --min-frames {min_frames}")
+    return DecodedClip(np.stack(resized), int(source_width), int(source_height), fps, backend)

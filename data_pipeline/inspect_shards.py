@@ -1,0 +1,95 @@
+"""`hauwm shards inspect DIR [--verify]`: what a shard directory holds, and whether it is intact.
+
+Prints, per split, clips, frames, shards, bytes and bytes per frame, and the failed clips by reason
+(from manifest.json and errors.jsonl). `--verify` re-reads every shard: it must exist with the
+manifest's size and SHA-256, and hold exactly the manifest's clips and frames, each clip with its
+frames member and a JSON member whose `num_frames` matches the frames stored.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tarfile
+from collections import Counter
+from pathlib import Path
+
+from tqdm import tqdm
+
+from .shard_format import decode_frames
+
+MANIFEST_FILE, ERRORS_FILE = "manifest.json", "errors.jsonl"
+
+
+class ShardDirError(Exception):
+    """Not a finished shard directory; the message says how to make one."""
+
+
+def load_manifest(directory: Path) -> dict:
+    path = Path(directory) / MANIFEST_FILE
+    if not path.is_file():
+        raise ShardDirError(f"{path} not found; build shards with `hauwm shards build --annotations DIR --videos DIR "
+                            f"--out {directory}` (a build in parts writes the manifest when all parts are done)")
+    return json.loads(path.read_text())
+
+
+def check_shard(path: Path, expected: dict) -> list[str]:
+    """Problems with one shard (empty when it matches its manifest entry)."""
+    if not path.is_file():
+        return [f"{path.name}: missing"]
+    problems = []
+    data = path.read_bytes()
+    if len(data) != expected["bytes"]:
+        problems.append(f"{path.name}: {len(data)} bytes, manifest says {expected['bytes']}")
+    if hashlib.sha256(data).hexdigest() != expected["sha256"]:
+        problems.append(f"{path.name}: SHA-256 differs from the manifest")
+    try:
+        members: dict[str, dict[str, bytes]] = {}
+        with tarfile.open(path) as tar:
+            for member in tar:
+                key, extension = member.name.split(".", 1)
+                members.setdefault(key, {})[extension] = tar.extractfile(member).read()
+        frames = 0
+        for key, files in members.items():
+            metadata = json.loads(files["json"])
+            frames_extension = next(e for e in files if e != "json")
+            stored = len(decode_frames(files[frames_extension], frames_extension))
+            if stored != metadata["num_frames"]:
+                problems.append(f"{path.name}: clip {key} stores {stored} frames, its JSON says {metadata['num_frames']}")
+            frames += stored
+    except (tarfile.TarError, KeyError, StopIteration, ValueError) as error:
+        return problems + [f"{path.name}: unreadable ({type(error).__name__}: {error})"]
+    if len(members) != expected["clips"] or frames != expected["frames"]:
+        problems.append(f"{path.name}: {len(members)} clips and {frames} frames, manifest says "
+                        f"{expected['clips']} and {expected['frames']}")
+    return problems
+
+
+def inspect_shards(directory: Path, verify: bool = False, log=print) -> int:
+    directory = Path(directory)
+    manifest = load_manifest(directory)
+    errors_path = directory / ERRORS_FILE
+    errors = [json.loads(line) for line in errors_path.read_text().splitlines()] if errors_path.is_file() else []
+    settings = manifest["settings"]
+    log(f"{directory}: format {manifest['format_version']}, {settings['size']}×{settings['size']} "
+        f"{settings['resize']}, encoding {settings['encoding']}" +
+        (f" (quality {settings['quality']})" if settings["encoding"] == "jpeg" else ""))
+    log(f"{'split':<12}{'clips':>8}{'frames':>10}{'shards':>8}{'MB':>9}{'B/frame':>9}{'errors':>8}")
+    for split, counts in manifest["splits"].items():
+        log(f"{split:<12}{counts['clips']:>8}{counts['frames']:>10}{len(counts['shards']):>8}"
+            f"{counts['bytes'] / 1e6:>9.1f}{counts['bytes'] / max(counts['frames'], 1):>9.0f}{counts['errors']:>8}")
+    by_reason = Counter((error["split"], error["reason"]) for error in errors)
+    for (split, reason), count in sorted(by_reason.items()):
+        log(f"  {split} errors: {reason}: {count}")
+    if not verify:
+        return 0
+    shards = [(split, shard) for split, counts in manifest["splits"].items() for shard in counts["shards"]]
+    problems = []
+    for split, shard in tqdm(shards, desc="verify", unit="shard", disable=None):
+        problems += check_shard(directory / shard["name"], shard)
+    if len(errors) != manifest["errors"]["total"]:
+        problems.append(f"{ERRORS_FILE}: {len(errors)} lines, manifest says {manifest['errors']['total']}")
+    for problem in problems:
+        log(f"  FAILED {problem}")
+    log(f"verify: {len(shards)} shards, " + (f"{len(problems)} problems" if problems else "all match the manifest"))
+    return 1 if problems else 0

@@ -1,0 +1,172 @@
+"""The training loader: WebDataset shards → batches of variable-gap sequences (docs/architecture.md §2).
+
+Per epoch, the shard list is shuffled globally with `seed + epoch`, then split by node (rank) and by
+DataLoader worker (`webdataset.split_by_node`, `split_by_worker`). Each worker cycles over its shards
+(tar → samples → shuffle buffer → L sampled frames decoded → batches) and stops after exactly
+`batches_per_worker` batches, computed up front from the manifest's per-shard frame counts:
+
+    batches_per_worker = ⌊ clips with at least L frames / (world_size · workers · batch_size) ⌋
+
+so every rank runs the same number of steps (DDP would hang otherwise) however uneven the shards.
+A worker whose shards hold fewer clips than its share sees some clips twice; one with more sees some
+not at all this epoch (a new shuffle next epoch). Lightning does not call `set_epoch` on an
+IterableDataset: `data_pipeline.SetEpoch` (a callback) does it, before the workers are started.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+from collections.abc import Iterator
+from dataclasses import dataclass
+from itertools import islice
+from pathlib import Path
+
+import numpy as np
+import torch
+import webdataset as wds
+from torch.utils.data import DataLoader, IterableDataset
+from webdataset.utils import pytorch_worker_info
+
+from .sampling import gaps_of, sample_indices
+from .shard_format import decode_frames
+
+MANIFEST_FILE = "manifest.json"
+BUILD_HINT = ("build it with `hauwm shards build --annotations DIR --videos DIR --out {dir}` "
+              "(or `hauwm shards sample-data` first for the built-in data)")
+
+
+class LoaderError(ValueError):
+    """A shard directory or loader setting that cannot work; the message says what to do."""
+
+
+@dataclass(frozen=True)
+class ShardSet:
+    """The shards of one split: their URLs and, per shard, how many clips have each frame count."""
+    split: str
+    urls: list[str]
+    frame_counts: list[dict[int, int]]
+
+    def eligible(self, seq_len: int) -> list[int]:
+        """Per shard, the number of clips with at least `seq_len` frames (the others are skipped)."""
+        return [sum(n for frames, n in counts.items() if frames >= seq_len) for counts in self.frame_counts]
+
+
+def read_manifest(directory: str | Path) -> dict:
+    directory = Path(directory)
+    path = directory / MANIFEST_FILE
+    if not directory.is_dir():
+        raise LoaderError(f"shard directory {directory} does not exist; {BUILD_HINT.format(dir=directory)}")
+    if not path.is_file():
+        raise LoaderError(f"{path} not found: {directory} is not a finished shard directory; "
+                          f"{BUILD_HINT.format(dir=directory)} (a build in parts writes it when all parts are done)")
+    return json.loads(path.read_text())
+
+
+def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -> ShardSet:
+    """The shards of `split` listed in `directory/manifest.json`. `shard_url` (e.g.
+    `"pipe:aws s3 cp s3://bucket/shards/{name} -"`) fetches each tar from elsewhere; default: the local file."""
+    manifest = read_manifest(directory)
+    if split not in manifest["splits"]:
+        raise LoaderError(f"{Path(directory) / MANIFEST_FILE} has no split {split!r} (it has "
+                          f"{', '.join(manifest['splits'])}); build it with `hauwm shards build ... --split {split}`")
+    shards = manifest["splits"][split]["shards"]
+    urls = [shard_url.format(name=s["name"]) if shard_url else str(Path(directory) / s["name"]) for s in shards]
+    counts = [{int(frames): n for frames, n in s["frame_counts"].items()} for s in shards]
+    return ShardSet(split, urls, counts)
+
+
+def collate(samples: list[dict]) -> dict:
+    """Sequences → the batch of docs/architecture.md §2."""
+    indices = np.stack([s["indices"] for s in samples])  # [B, L]
+    return {
+        "frames": torch.from_numpy(np.stack([s["frames"] for s in samples])),  # uint8 [B, L, 3, H, W]
+        "gaps": torch.from_numpy(gaps_of(indices)),  # int64 [B, L], gaps[:, 0] == 0
+        "indices": torch.from_numpy(indices),  # int64 [B, L]
+        "num_frames": torch.tensor([s["num_frames"] for s in samples], dtype=torch.int64),  # [B]
+        "label": torch.tensor([s["label"] for s in samples], dtype=torch.int64),  # [B]
+        "id": [s["id"] for s in samples],
+    }
+
+
+def to_sequence(sample: dict, seq_len: int, k_max: int, rng: np.random.Generator) -> dict | None:
+    """A tar sample → L sampled frames `uint8 [L, 3, H, W]` and their facts; None for a too-short clip."""
+    metadata = json.loads(sample["json"])
+    indices = sample_indices(metadata["num_frames"], seq_len, k_max, rng)
+    if indices is None:
+        return None
+    extension = "jpgs" if "jpgs" in sample else "npy"
+    frames = decode_frames(sample[extension], extension, indices)  # [L, H, W, 3]
+    return {"frames": np.ascontiguousarray(frames.transpose(0, 3, 1, 2)), "indices": indices,
+            "num_frames": metadata["num_frames"], "label": metadata["class_index"], "id": metadata["id"]}
+
+
+def _cycle(shards: Iterator[dict]) -> Iterator[dict]:
+    """This worker's shards, over and over (the batch cap ends the epoch)."""
+    shards = list(shards)
+    while True:
+        yield from shards
+
+
+class SequenceDataset(IterableDataset):
+    """Batches of variable-gap sequences from one split's shards; `len()` is the batches per rank."""
+
+    def __init__(self, shards: ShardSet, batch_size: int = 32, seq_len: int = 16, k_max: int = 5,
+                 num_workers: int = 0, shuffle: bool = True, shuffle_buffer: int = 256, seed: int = 0,
+                 batches_per_worker: int | None = None):
+        if seq_len < 1 or k_max < 1 or batch_size < 1:
+            raise LoaderError(f"seq_len, k_max and batch_size must be at least 1 "
+                              f"(got {seq_len}, {k_max}, {batch_size})")
+        _, world_size, _, _ = pytorch_worker_info()
+        self.num_workers, self.workers = num_workers, max(1, num_workers)  # DataLoader workers; streams per rank
+        eligible = shards.eligible(seq_len)
+        usable = [(url, n) for url, n in zip(shards.urls, eligible) if n > 0]
+        streams = world_size * self.workers
+        if len(usable) < streams:
+            raise LoaderError(
+                f"split {shards.split!r} has {len(usable)} shards with clips of at least seq_len={seq_len} frames, "
+                f"but {world_size} ranks × {self.workers} workers need at least {streams}: rebuild with a smaller "
+                f"--clips-per-shard, or use fewer workers")
+        clips = sum(n for _, n in usable)
+        self.batches_per_worker = batches_per_worker or clips // (streams * batch_size)
+        if self.batches_per_worker < 1:
+            raise LoaderError(f"split {shards.split!r} has {clips} clips of at least {seq_len} frames, fewer than "
+                              f"one batch of {batch_size} for each of {streams} ranks × workers; lower batch_size")
+        self.urls = [url for url, _ in usable]
+        self.batch_size, self.seq_len, self.k_max = batch_size, seq_len, k_max
+        self.shuffle, self.shuffle_buffer, self.seed = shuffle, shuffle_buffer, seed
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.batches_per_worker * self.workers
+
+    def __iter__(self) -> Iterator[dict]:
+        rank, _, worker, _ = pytorch_worker_info()
+        urls = list(self.urls)
+        if self.shuffle:
+            random.Random(self.seed + self.epoch).shuffle(urls)  # the same order on every rank and worker
+        rng = np.random.default_rng([self.seed, self.epoch, rank, worker])
+        stages = [wds.SimpleShardList(urls), wds.split_by_node, wds.split_by_worker, _cycle, wds.tarfile_to_samples()]
+        if self.shuffle and self.shuffle_buffer > 1:
+            stages.append(wds.shuffle(self.shuffle_buffer, initial=self.shuffle_buffer,
+                                      rng=random.Random(int(rng.integers(2**63)))))
+        stages += [wds.map(lambda sample: to_sequence(sample, self.seq_len, self.k_max, rng)),
+                   wds.batched(self.batch_size, collation_fn=collate, partial=False)]
+        return islice(iter(wds.DataPipeline(*stages)), self.batches_per_worker)
+
+
+def _init_worker(_: int) -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
+    torch.set_num_threads(1)
+
+
+def make_dataloader(dataset: SequenceDataset) -> DataLoader:
+    """Batches come collated from the dataset, so `batch_size=None`; workers restart every epoch
+    (`persistent_workers=False`) so they see the epoch `SetEpoch` set."""
+    return DataLoader(dataset, batch_size=None, num_workers=dataset.num_workers, worker_init_fn=_init_worker,
+                      persistent_workers=False, pin_memory=torch.cuda.is_available())

@@ -1,0 +1,83 @@
+"""Something-Something-v2 label files → clip records.
+
+SSv2 ships four JSON files: `something-something-v2-{train,validation,test}.json` (lists of entries)
+and `something-something-v2-labels.json` (class name → index as a string). Train and validation entries
+carry `id`, `label` (the caption), `template` (the class name with brackets around the placeholders) and
+`placeholders`; test entries carry only `id`. The class index is
+`labels[template.replace("[", "").replace("]", "")]`: strip only the brackets, because the bracket
+contents are not always "something" and some class names contain commas.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+SPLITS = ("train", "validation", "test")
+NO_LABEL = -1
+
+
+class AnnotationError(ValueError):
+    """A label file is missing or malformed; the message names the file and what to do."""
+
+
+@dataclass(frozen=True)
+class ClipRecord:
+    id: str
+    split: str
+    caption: str = ""
+    template: str = ""
+    class_index: int = NO_LABEL
+
+
+def annotation_path(annotations: Path, name: str) -> Path:
+    return Path(annotations) / f"something-something-v2-{name}.json"
+
+
+def class_name(template: str) -> str:
+    """`"Putting [something] onto [a slanted surface]"` → `"Putting something onto a slanted surface"`."""
+    return template.replace("[", "").replace("]", "")
+
+
+def _read_json(path: Path):
+    if not path.is_file():
+        raise AnnotationError(f"{path}: file not found; --annotations must be the directory holding the four "
+                              "something-something-v2-*.json files")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise AnnotationError(f"{path}: not valid JSON ({error})") from None
+
+
+def load_labels(annotations: Path) -> dict[str, int]:
+    """Class name (brackets stripped) → class index."""
+    path = annotation_path(annotations, "labels")
+    labels = _read_json(path)
+    if not isinstance(labels, dict):
+        raise AnnotationError(f"{path}: expected an object mapping class names to indices")
+    return {name: int(index) for name, index in labels.items()}
+
+
+def load_split(annotations: Path, split: str, labels: dict[str, int] | None = None) -> list[ClipRecord]:
+    """The clips of one split, in the file's order; `labels` defaults to the labels file next to it."""
+    if split not in SPLITS:
+        raise AnnotationError(f"unknown split {split!r}; choose from {', '.join(SPLITS)}")
+    path = annotation_path(annotations, split)
+    entries = _read_json(path)
+    if not isinstance(entries, list):
+        raise AnnotationError(f"{path}: expected a list of clip entries")
+    if split == "test":
+        return [ClipRecord(id=str(entry["id"]), split=split) for entry in entries]
+    labels = load_labels(annotations) if labels is None else labels
+    records = []
+    for position, entry in enumerate(entries):
+        try:
+            name = class_name(entry["template"])
+            records.append(ClipRecord(id=str(entry["id"]), split=split, caption=entry["label"],
+                                      template=entry["template"], class_index=labels[name]))
+        except KeyError as missing:
+            raise AnnotationError(f"{path}: entry {position} (id {entry.get('id')!r}): {missing} not found "
+                                  f"(class name {class_name(entry.get('template', ''))!r} must be a key of "
+                                  f"{annotation_path(annotations, 'labels')})") from None
+    return records

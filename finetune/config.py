@@ -1,0 +1,103 @@
+"""Fine-tuning settings: one dataclass with the paper's Table 3 defaults, read from a YAML file.
+
+A config file sets any subset of the fields below; `configs/finetune/<suite>_<task>.yaml` set the task,
+its budget and its evaluation cadence. Counts named `*_steps`/`steps`/`prefill`/`*_every` are
+environment steps (frames: one agent step is `action_repeat` of them), as in the paper's budgets.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+
+@dataclass
+class FinetuneConfig:
+    task: str = "dmc_cheetah_run"
+    agent: str = "hauwm"  # "hauwm": dual-stream on the frozen export; "scratch": DreamerV2-like baseline
+    seed: int = 0
+    logdir: str = "runs/finetune"
+    device: str = "auto"  # "auto" (cuda when available), "cpu" or "cuda"
+    threads: int = 0  # torch CPU threads, 0 = torch's default
+    # environment
+    steps: int = 1_000_000  # env steps (frames), Table 3: DMC 1M, Meta-World and RoboDesk 250k
+    action_repeat: int = 2
+    time_limit: int | None = None  # agent steps per episode, None = the suite's own (DMC 1000 frames / repeat)
+    fast_render: bool = False  # no shadows or multisampling (finetune/envs)
+    # replay and schedule
+    prefill: int = 10_000  # random-policy env steps before learning (Table 3; the text says 5,000)
+    replay_capacity: int = 1_000_000
+    batch_size: int = 32
+    seq_len: int = 50
+    train_every: int = 5  # env steps per gradient update (DreamerV2's DMC setting)
+    eval_every: int = 10_000
+    eval_episodes: int = 10
+    log_every: int = 1_000
+    checkpoint_every: int = 50_000
+    # world model (the new action-conditioned stream; the frozen stream's sizes come from the export)
+    deter: int | None = None  # None: the export's size (200 for the scratch baseline); the decoder copy needs equal sizes
+    stoch: int | None = None  # None: the export's size (30 for the scratch baseline)
+    hidden: int = 200
+    units: int = 400  # reward head, actor and critic: 2 hidden layers × 400 ELU
+    noise_std: float = 0.01  # Gaussian noise on the frozen stream's k = 1 temporal embedding
+    k1_clip_length: float | None = None  # T of the relative k = 1 embedding; None = the export's reference length
+    kl_balance: float = 0.8
+    kl_scale: float = 1.0
+    free_nats: float = 1.0
+    model_lr: float = 3e-4
+    # scratch baseline only (the hauwm agent uses the export's encoder)
+    encoder_width: int = 32
+    # behaviour
+    horizon: int = 15
+    gamma: float = 0.99
+    lam: float = 0.95
+    actor_lr: float = 8e-5
+    critic_lr: float = 8e-5
+    entropy_scale: float = 1e-4
+    target_fraction: float = 0.02
+    grad_clip: float = 100.0
+
+
+class ConfigError(ValueError):
+    pass
+
+
+def load_config(path: str | Path | None, overrides: dict[str, object] | None = None) -> FinetuneConfig:
+    """Read a YAML config (None: the defaults) and apply `overrides`; unknown keys are an error."""
+    values: dict[str, object] = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"config file {path} not found (configs are in configs/finetune/)")
+        values = yaml.safe_load(path.read_text()) or {}
+        if not isinstance(values, dict):
+            raise ConfigError(f"config file {path} must hold a mapping of settings, found {type(values).__name__}")
+    values.update(overrides or {})
+    fields = {f.name: f for f in dataclasses.fields(FinetuneConfig)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ConfigError(f"unknown setting(s) {unknown} in {path or 'overrides'}; known: {sorted(fields)}")
+    if values.get("agent", "hauwm") not in ("hauwm", "scratch"):
+        raise ConfigError(f"agent must be 'hauwm' or 'scratch', got {values['agent']!r}")
+    for name, value in values.items():
+        default = fields[name].default
+        if isinstance(default, bool) and not isinstance(value, bool):
+            raise ConfigError(f"setting {name} must be true or false, got {value!r}")
+        if isinstance(default, (int, float)) and not isinstance(default, bool) and isinstance(value, (int, float, str)):
+            try:
+                number = float(value)  # YAML reads 1e6 as a string
+            except ValueError:
+                raise ConfigError(f"setting {name} must be a number, got {value!r}") from None
+            values[name] = int(number) if isinstance(default, int) else number
+    return FinetuneConfig(**values)
+
+
+def parse_override(text: str) -> tuple[str, object]:
+    """`key=value` with the value read as YAML (so numbers, booleans and null get their types)."""
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise ConfigError(f"--set expects key=value, got {text!r}")
+    return key.strip(), yaml.safe_load(value)

@@ -1,0 +1,70 @@
+"""Load the frozen pre-trained export for fine-tuning (docs/architecture.md section 4; paper §4.3).
+
+`load_pretrained(DIR)` reads `DIR/config.json` and `DIR/weights.safetensors` through
+`model.export.load_frozen` (JSON and safetensors only: nothing is unpickled), then checks what
+fine-tuning relies on — schema version, tensor names and shapes, the feature size, the temporal
+embedding's convention (mode, dim, reference length) and the image normalisation — and freezes every
+parameter (requires_grad False, eval mode). Every failure is a `PretrainedError` naming the file and
+what to do.
+
+`k1_embedding(model)` builds the conditioning of the frozen stream, Δt^e_{k=1}, the way pre-training
+built embeddings: the relative mode encodes k = 1 at position 1 / T · reference_length; fine-tuning has
+no source clip, so T defaults to the reference length (position 1, the same vector as the absolute
+mode's E[1]); `k1_clip_length` in the fine-tuning config sets another T.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from model.export import NORMALISATION, ExportError, FrozenWorldModel, load_frozen, read_config
+from model.networks import IMAGE_SHAPE
+from model.temporal import MODES
+
+
+class PretrainedError(ValueError):
+    """A --pretrained directory that fine-tuning cannot use; the message names the file and the fix."""
+
+
+def load_pretrained(directory: str | Path, device: torch.device | str = "cpu") -> FrozenWorldModel:
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise PretrainedError(f"--pretrained {directory}: no such directory; pass the output of "
+                              "`hauwm pretrain export CKPT --out DIR`")
+    try:
+        config = read_config(directory)
+        _check_convention(config, directory / "config.json")
+        model = load_frozen(directory, device)
+    except ExportError as error:
+        raise PretrainedError(f"--pretrained {directory}: {error}") from None
+    if model.rssm.feature_dim != config.get("feature_dim", model.rssm.feature_dim):
+        raise PretrainedError(f"--pretrained {directory}: config.json says feature_dim {config['feature_dim']}, "
+                              f"the weights give {model.rssm.feature_dim}; re-export the checkpoint")
+    if model.temporal.dim != model.rssm.img_in[0].in_features - model.rssm.stoch_dim:
+        raise PretrainedError(f"--pretrained {directory}: temporal_dim {model.temporal.dim} does not match the "
+                              "RSSM's conditioning input; re-export the checkpoint")
+    model.requires_grad_(False).eval()
+    return model
+
+
+def _check_convention(config: dict, path: Path) -> None:
+    if config.get("temporal_mode") not in MODES:
+        raise PretrainedError(f"{path}: temporal_mode {config.get('temporal_mode')!r} is not one of {MODES}")
+    if not (isinstance(config.get("reference_length"), (int, float)) and config["reference_length"] > 0):
+        raise PretrainedError(f"{path}: reference_length must be a positive number, got {config.get('reference_length')!r}")
+    if list(config.get("image_shape", IMAGE_SHAPE)) != list(IMAGE_SHAPE):
+        raise PretrainedError(f"{path}: image_shape {config['image_shape']} differs from the {list(IMAGE_SHAPE)} "
+                              "frames the environments give")
+    normalisation = config.get("normalisation", NORMALISATION)
+    if (normalisation.get("scale"), normalisation.get("offset")) != (NORMALISATION["scale"], NORMALISATION["offset"]):
+        raise PretrainedError(f"{path}: image normalisation {normalisation} differs from this code's "
+                              f"{NORMALISATION['formula']}")
+
+
+def k1_embedding(model: FrozenWorldModel, clip_length: float | None = None) -> torch.Tensor:
+    """Δt^e_{k=1} → [temporal_dim]; `clip_length` is T of the relative mode (default: the reference length)."""
+    clip_length = model.temporal.reference_length if clip_length is None else clip_length
+    with torch.no_grad():
+        return model.temporal(torch.ones(()), torch.tensor(float(clip_length))).float()

@@ -1,0 +1,84 @@
+"""Episode replay: every finished episode is kept in memory and written to disk as one `.npz`.
+
+An episode of T agent steps holds T + 1 entries, aligned as in Dreamer: entry t is the observation o_t,
+the action a_{t−1} that led to it and the reward r_t received with it (entry 0 has a zero action and
+zero reward). Training batches are random windows of `length` consecutive entries from one episode
+(32 × 50 in the paper's Table 3), so a window never crosses an episode boundary. The capacity
+(10^6 steps) is enforced by dropping the oldest episodes from memory; files stay on disk, and a resumed
+run reloads the newest episodes that fit.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+KEYS = ("obs", "action", "reward")
+
+
+class Replay:
+    def __init__(self, directory: Path | None, capacity: int, rng: np.random.Generator):
+        self.directory = Path(directory) if directory is not None else None
+        self.capacity = capacity
+        self.rng = rng
+        self.episodes: deque[dict[str, np.ndarray]] = deque()
+        self.num_steps = 0  # agent steps held in memory
+        self.num_saved = 0  # episodes ever written (numbers the files)
+
+    def add(self, episode: dict[str, np.ndarray]) -> None:
+        """Store one finished episode: obs uint8 [T+1, 3, H, W], action float32 [T+1, A], reward float32 [T+1]."""
+        episode = {key: np.asarray(episode[key]) for key in KEYS}
+        length = len(episode["reward"]) - 1
+        if self.directory is not None:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            path = self.directory / f"{self.num_saved:06d}-{length}.npz"
+            tmp = path.with_suffix(".tmp.npz")
+            np.savez_compressed(tmp, **episode)
+            os.replace(tmp, path)
+        self.num_saved += 1
+        self._keep(episode)
+
+    def load(self) -> int:
+        """Reload the newest episodes on disk that fit the capacity (for resume); returns how many."""
+        if self.directory is None or not self.directory.is_dir():
+            return 0
+        paths = sorted(p for p in self.directory.glob("*.npz") if not p.name.endswith(".tmp.npz"))
+        self.num_saved = len(paths)
+        chosen, steps = [], 0
+        for path in reversed(paths):
+            length = int(path.stem.split("-")[1])
+            if steps + length > self.capacity:
+                break
+            chosen.append(path)
+            steps += length
+        for path in reversed(chosen):
+            with np.load(path, allow_pickle=False) as data:
+                self._keep({key: data[key] for key in KEYS})
+        return len(chosen)
+
+    def _keep(self, episode: dict[str, np.ndarray]) -> None:
+        self.episodes.append(episode)
+        self.num_steps += len(episode["reward"]) - 1
+        while self.num_steps > self.capacity and len(self.episodes) > 1:
+            self.num_steps -= len(self.episodes.popleft()["reward"]) - 1
+
+    def ready(self, length: int) -> bool:
+        return any(len(ep["reward"]) >= length for ep in self.episodes)
+
+    def sample(self, batch_size: int, length: int) -> dict[str, np.ndarray]:
+        """`batch_size` windows of `length` entries, each window start uniform over all valid starts."""
+        starts_per_episode = np.array([max(len(ep["reward"]) - length + 1, 0) for ep in self.episodes])
+        if starts_per_episode.sum() == 0:
+            raise ValueError(f"no episode in the replay holds {length} steps: lower seq_len or raise time_limit")
+        picks = self.rng.choice(starts_per_episode.sum(), size=batch_size)
+        offsets = np.cumsum(starts_per_episode) - starts_per_episode
+        batch = {key: [] for key in KEYS}
+        for pick in picks:
+            index = int(np.searchsorted(offsets, pick, side="right") - 1)
+            start = pick - offsets[index]
+            for key in KEYS:
+                batch[key].append(self.episodes[index][key][start:start + length])
+        return {key: np.stack(values) for key, values in batch.items()}  # obs [B, L, 3, H, W], ...

@@ -1,0 +1,188 @@
+"""The online fine-tuning loop (paper Algorithm 1, phase 2): act → replay → update → evaluate → checkpoint.
+
+Counts are environment steps (frames). The first `prefill` steps take uniformly random actions; after
+that one gradient update (world model, then actor and critic) runs every `train_every` env steps.
+Every `eval_every` env steps the policy's mode plays `eval_episodes` episodes on a separately seeded
+environment; returns are logged raw and normalised with the paper's Table 4 references where the task
+has them. `checkpoint.pt` in the run directory holds everything but the frozen export and the replay
+(the replay's episodes are on disk in `replay/`); starting again with the same --logdir resumes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch._dynamo  # noqa: F401  before any MuJoCo/OSMesa context: triton (which torch.optim imports lazily) segfaults once OSMesa's LLVM is loaded
+import yaml
+from tqdm import tqdm
+
+from finetune.agent import Agent
+from finetune.config import FinetuneConfig
+from finetune.logger import Logger
+from finetune.replay import Replay
+
+CHECKPOINT = "checkpoint.pt"
+
+
+class FinetuneError(RuntimeError):
+    """A problem the user can fix (bad flags, a run directory from another task); printed without a traceback."""
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise FinetuneError(f"device {name!r} asked for but no CUDA device is visible; use --device cpu")
+    return torch.device(name)
+
+
+def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | None, device: torch.device) -> Agent:
+    from finetune.pretrained import k1_embedding, load_pretrained
+
+    if cfg.agent == "scratch":
+        return Agent(cfg, action_dim).to(device)
+    if pretrained is None:
+        raise FinetuneError("agent 'hauwm' needs --pretrained DIR (an export of `hauwm pretrain export`); "
+                            "or run the scratch baseline with --set agent=scratch")
+    frozen = load_pretrained(pretrained)
+    return Agent(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
+
+
+def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, int]) -> None:
+    state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
+             "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state()}
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig) -> dict[str, int]:
+    state = torch.load(path, map_location=agent.device, weights_only=True)
+    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units"):
+        if state["config"][key] != getattr(cfg, key):
+            raise FinetuneError(f"{path} was written by a run with {key}={state['config'][key]!r}, this run has "
+                                f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
+    missing, unexpected = agent.load_state_dict(state["agent"], strict=False)
+    missing = [k for k in missing if not k.startswith("world_model.frozen.")]
+    if missing or unexpected:
+        raise FinetuneError(f"{path} does not fit this agent (missing {missing[:3]}, unexpected {unexpected[:3]})")
+    agent.load_optimizer_state_dicts(state["optimizers"])
+    torch.set_rng_state(state["torch_rng"])
+    return dict(state["counters"])
+
+
+def evaluate(agent: Agent, env, episodes: int, task: str) -> dict[str, float]:
+    """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate."""
+    from finetune.envs.references import normalised_return
+
+    returns, successes = [], []
+    for _ in range(episodes):
+        obs, _ = env.reset()
+        latent, prev_action = agent.initial()
+        total, success, done = 0.0, False, False
+        while not done:
+            action, latent, prev_action = agent.act(obs, latent, prev_action, explore=False)
+            obs, reward, terminated, truncated, info = env.step(action)
+            total += float(reward)
+            success = success or bool(info.get("success", False))
+            done = terminated or truncated
+        returns.append(total)
+        successes.append(success)
+    result = {"return": float(np.mean(returns)), "return_std": float(np.std(returns))}
+    try:
+        result["normalised_return"] = float(normalised_return(task, result["return"]))
+    except KeyError:  # tasks outside the paper's Table 4 (e.g. the demo's cartpole) have no references
+        pass
+    if task.startswith("metaworld"):
+        result["success_rate"] = float(np.mean(successes))
+    return result
+
+
+def train(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: bool = True) -> dict[str, float]:
+    """Run (or resume) fine-tuning in cfg.logdir until cfg.steps env steps; returns the last evaluation."""
+    from finetune.envs import make_env
+
+    logdir = Path(cfg.logdir)
+    device = resolve_device(cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    env_kwargs = dict(action_repeat=cfg.action_repeat, fast_render=cfg.fast_render, time_limit=cfg.time_limit)
+    probe = make_env(cfg.task, seed=cfg.seed, **env_kwargs)
+    agent = build_agent(cfg, probe.action_space.shape[0], pretrained, device)
+    counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
+                "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
+    checkpoint = logdir / CHECKPOINT
+    if checkpoint.exists():
+        counters = load_checkpoint(checkpoint, agent, cfg)
+    logdir.mkdir(parents=True, exist_ok=True)
+    (logdir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+
+    # a resumed run reseeds from its progress, so it does not replay the same random streams
+    seed = cfg.seed + counters["episodes"]
+    rng = np.random.default_rng([cfg.seed, counters["env_step"]])
+    env = probe if counters["episodes"] == 0 else make_env(cfg.task, seed=seed, **env_kwargs)
+    env.action_space.seed(seed)
+    eval_env = make_env(cfg.task, seed=cfg.seed + 10_000 + counters["env_step"], **env_kwargs)
+    replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
+    replay.load()
+    logger = Logger(logdir)
+
+    obs, _ = env.reset()
+    latent, prev_action = agent.initial()
+    episode = {"obs": [obs], "action": [np.zeros(env.action_space.shape, np.float32)], "reward": [0.0]}
+    last_eval: dict[str, float] = {}
+    bar = tqdm(total=cfg.steps, initial=counters["env_step"], unit="step", desc=cfg.task, disable=not progress,
+               dynamic_ncols=True)
+    window = {"time": time.perf_counter(), "updates": counters["updates"], "metrics": []}
+    while counters["env_step"] < cfg.steps:
+        action, latent, prev_action = agent.act(obs, latent, prev_action, explore=True)
+        if counters["env_step"] < cfg.prefill:
+            action = env.action_space.sample().astype(np.float32)
+            prev_action = torch.as_tensor(action, device=agent.device).unsqueeze(0)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        for key, value in (("obs", obs), ("action", action), ("reward", float(reward))):
+            episode[key].append(value)
+        counters["env_step"] += cfg.action_repeat
+        bar.update(cfg.action_repeat)
+
+        if terminated or truncated:
+            replay.add({"obs": np.stack(episode["obs"]), "action": np.stack(episode["action"]).astype(np.float32),
+                        "reward": np.asarray(episode["reward"], np.float32)})
+            counters["episodes"] += 1
+            logger.write("episodes", counters["env_step"], {"return": float(sum(episode["reward"])),
+                                                           "length": len(episode["reward"]) - 1})
+            obs, _ = env.reset()
+            latent, prev_action = agent.initial()
+            episode = {"obs": [obs], "action": [episode["action"][0]], "reward": [0.0]}
+
+        updates_due = max(0, counters["env_step"] - cfg.prefill) // cfg.train_every
+        while counters["updates"] < updates_due and replay.ready(cfg.seq_len):
+            window["metrics"].append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
+            counters["updates"] += 1
+
+        if counters["env_step"] >= counters["next_log"] and window["metrics"]:
+            now = time.perf_counter()
+            metrics = {k: float(np.mean([m[k] for m in window["metrics"]])) for k in window["metrics"][0]}
+            metrics["updates_per_s"] = (counters["updates"] - window["updates"]) / (now - window["time"])
+            metrics["updates"] = counters["updates"]
+            logger.write("train", counters["env_step"], metrics)
+            bar.set_postfix(updates_per_s=f"{metrics['updates_per_s']:.2f}", model_loss=f"{metrics['model_loss']:.1f}")
+            window = {"time": now, "updates": counters["updates"], "metrics": []}
+            counters["next_log"] += cfg.log_every
+        if counters["env_step"] >= counters["next_eval"] or counters["env_step"] >= cfg.steps:
+            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task)
+            logger.write("eval", counters["env_step"], last_eval)
+            bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
+            counters["next_eval"] += cfg.eval_every
+        if counters["env_step"] >= counters["next_checkpoint"] or counters["env_step"] >= cfg.steps:
+            save_checkpoint(checkpoint, agent, cfg, counters)
+            counters["next_checkpoint"] += cfg.checkpoint_every
+    bar.close()
+    logger.close()
+    return last_eval

@@ -1,0 +1,219 @@
+"""The dual-stream world model of fine-tuning (paper §4.3, appendix D.1), and its scratch twin.
+
+Frozen stream (pre-trained encoder + ensemble RSSM, never updated), conditioned on the k = 1 temporal
+embedding plus Gaussian noise where an action would enter:
+
+    c_t  = Δt^e_{k=1} + ε_t,   ε_t ~ N(0, σ² I),  σ = 0.01
+    ŝ_t  ~ q_θ(ŝ_t | ŝ_{t−1}, c_t, enc(o_t))                       (the export's posterior)
+
+New action-conditioned stream (trained from scratch, the same RSSM building block with one prior head):
+
+    h̃_t = GRU(h̃_{t−1}, [s̃_{t−1}; a_{t−1}])
+    prior      p_ψ(s̃_t | h̃_t)             posterior   q_ψ(s̃_t | h̃_t, ŝ_t)     (ŝ_t enters as the frozen feature [deter; stoch])
+    reward     R(s̃_t) = MLP(s̃_t)          decoder     D(s̃_t) → ô_t
+
+Losses of the new stream (APV's stacked model is the reference: its action-conditioned stream has its own
+posterior and prior tied by a KL term, and the decoder reconstructs o_t from that stream's state):
+
+    L = − log N(o_t; D(s̃_t), 1) − log N(r_t; R(s̃_t), 1)
+        + β [ α · max(KL(sg(q) ‖ p), free) + (1 − α) · max(KL(q ‖ sg(p)), free) ]       (α 0.8, β 1, free 1 nat)
+
+Why these terms: the reconstruction is taken from s̃_t alone (not from [ŝ_t; s̃_t]) so that s̃_t must carry
+what the frame shows; the reward head and imagination live in s̃, so a stream that could lean on ŝ_t for
+the decoder would let s̃_t collapse onto its prior. The KL trains the action-conditioned prior to predict
+what the posterior reads from ŝ_t, which is what makes action-conditioned imagination possible. The
+decoder starts from the export's decoder when the sizes match (APV fine-tunes its pre-trained decoder);
+the frozen stream gets no loss at all.
+
+Imagination: the frozen stream advances open-loop with its ensemble mean μ̄ = (1/M) Σ_i μ_i (as in
+pre-training's open-loop prediction; it ignores actions), the new stream with the policy's actions,
+sampling s̃_t from its prior so that gradients of returns reach the actions (dynamics backprop).
+
+Scratch baseline (agent: scratch, DreamerV2-like with Gaussian latents): no frozen stream; a trainable
+encoder feeds the posterior directly, and the policy sees s̃_t only.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+from collections.abc import Callable, Iterator
+from typing import NamedTuple
+
+import torch
+from torch import nn
+from torch.distributions import Normal, kl_divergence
+
+from finetune.behavior import mlp
+from finetune.config import FinetuneConfig
+from model.networks import Decoder, Encoder, preprocess
+from model.rssm import EnsembleRSSM, RSSMState
+
+
+class Latent(NamedTuple):
+    """The agent's state: the frozen stream's ŝ (None for the scratch baseline) and the new stream's s̃."""
+
+    frozen: RSSMState | None
+    new: RSSMState
+
+
+@contextlib.contextmanager
+def no_param_grads(module: nn.Module) -> Iterator[None]:
+    """Build graphs that reach `module`'s outputs but record no gradients for its parameters."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
+
+
+class WorldModel(nn.Module):
+    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: nn.Module | None, k1_embedding: torch.Tensor | None):
+        """`frozen`: the FrozenWorldModel from `finetune.load_pretrained` (None: scratch baseline) and its
+        k = 1 temporal embedding [cond_dim]."""
+        super().__init__()
+        self.frozen = frozen
+        self.noise_std = cfg.noise_std
+        if frozen is not None:
+            self.register_buffer("k1_embedding", k1_embedding.float().clone())
+            self.encoder = None  # the frozen one is used
+            posterior_input = frozen.rssm.feature_dim
+        else:
+            self.encoder = Encoder(width=cfg.encoder_width, embed_dim=32 * cfg.encoder_width)
+            posterior_input = self.encoder.embed_dim
+        deter = cfg.deter or (frozen.rssm.deter_dim if frozen is not None else 200)
+        stoch = cfg.stoch or (frozen.rssm.stoch_dim if frozen is not None else 30)
+        self.rssm = EnsembleRSSM(posterior_input, action_dim, deter, stoch, cfg.hidden, ensemble=1)
+        self.decoder = self._decoder(cfg, frozen)
+        self.reward = mlp(self.rssm.feature_dim, 1, cfg.units)
+        self.kl_balance, self.kl_scale, self.free_nats = cfg.kl_balance, cfg.kl_scale, cfg.free_nats
+        self.optimizer = torch.optim.Adam(self.trainable_parameters(), lr=cfg.model_lr, eps=1e-5)
+        self.grad_clip = cfg.grad_clip
+
+    def _decoder(self, cfg: FinetuneConfig, frozen: nn.Module | None) -> Decoder:
+        if frozen is None:
+            return Decoder(self.rssm.feature_dim, width=cfg.encoder_width)
+        if frozen.decoder.feat_dim != self.rssm.feature_dim:
+            raise ValueError(
+                f"the new stream's feature size deter+stoch = {self.rssm.feature_dim} must equal the export's "
+                f"decoder input {frozen.decoder.feat_dim} so the decoder can start from the pre-trained one (APV); "
+                f"leave deter/stoch unset in the config (they default to the export's sizes)")
+        return copy.deepcopy(frozen.decoder).requires_grad_(True).train()  # a trainable copy; the export stays frozen
+
+    def train(self, mode: bool = True) -> WorldModel:
+        super().train(mode)
+        if self.frozen is not None:
+            self.frozen.eval()  # the export stays in eval mode whatever the agent does
+        return self
+
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        """The new stream, decoder, reward head (and the scratch encoder): everything but the frozen export."""
+        frozen_ids = {id(p) for p in self.frozen.parameters()} if self.frozen is not None else set()
+        return [p for p in self.parameters() if id(p) not in frozen_ids]
+
+    @property
+    def feature_dim(self) -> int:
+        """Size of the policy's input z_t = [ŝ_t; s̃_t] (s̃_t alone for the scratch baseline)."""
+        frozen = self.frozen.rssm.feature_dim if self.frozen is not None else 0
+        return frozen + self.rssm.feature_dim
+
+    def feature(self, latent: Latent) -> torch.Tensor:
+        new = self.rssm.feature(latent.new)
+        return new if latent.frozen is None else torch.cat([self.frozen.rssm.feature(latent.frozen), new], -1)
+
+    def frozen_cond(self, *shape: int) -> torch.Tensor:
+        """c = Δt^e_{k=1} + N(0, σ²): the frozen stream's conditioning, fresh noise per call → [*shape, cond_dim]."""
+        k1 = self.k1_embedding.expand(*shape, -1)
+        return k1 + self.noise_std * torch.randn_like(k1)
+
+    # -- filtering real sequences -------------------------------------------------------------------
+
+    def observe(self, obs: torch.Tensor, actions: torch.Tensor) -> tuple[Latent, tuple[torch.Tensor, ...]]:
+        """obs uint8 [B, L, 3, 64, 64], actions [B, L, A] (a_{t−1} at t) → posterior latents [B, L, ·] and the
+        new stream's (post mean, post std, prior mean, prior std), each [B, L, S]."""
+        batch, length = obs.shape[:2]
+        images = preprocess(obs)
+        if self.frozen is not None:
+            with torch.no_grad():
+                frozen = self.frozen.rssm.observe(self.frozen.encoder(images), self.frozen_cond(batch, length))
+            frozen_state = RSSMState(frozen.deter, frozen.stoch)
+            posterior_input = self.frozen.rssm.feature(frozen_state)  # [B, L, 230]
+        else:
+            frozen_state, posterior_input = None, self.encoder(images)
+        new = self.rssm.observe(posterior_input, actions)
+        dists = (new.post_mean, new.post_std, new.prior_mean[0], new.prior_std[0])
+        return Latent(frozen_state, RSSMState(new.deter, new.stoch)), dists
+
+    def loss(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, Latent, dict[str, float]]:
+        latent, (post_mean, post_std, prior_mean, prior_std) = self.observe(batch["obs"], batch["action"])
+        feat = self.rssm.feature(latent.new)  # [B, L, F~]
+        recon = self.decoder(feat)  # [B, L, 3, 64, 64]
+        recon_nll = 0.5 * (recon - preprocess(batch["obs"])).pow(2).sum((-3, -2, -1)).mean()
+        reward_nll = 0.5 * (self.reward(feat).squeeze(-1) - batch["reward"]).pow(2).mean()
+        post, prior = Normal(post_mean, post_std), Normal(prior_mean, prior_std)
+        post_sg, prior_sg = Normal(post_mean.detach(), post_std.detach()), Normal(prior_mean.detach(), prior_std.detach())
+        kl_prior = kl_divergence(post_sg, prior).sum(-1).mean()  # trains the prior
+        kl_post = kl_divergence(post, prior_sg).sum(-1).mean()  # regularises the posterior
+        kl = self.kl_balance * kl_prior.clamp(min=self.free_nats) + (1 - self.kl_balance) * kl_post.clamp(min=self.free_nats)
+        loss = recon_nll + reward_nll + self.kl_scale * kl
+        metrics = {"model_loss": loss.item(), "recon_nll": recon_nll.item(), "reward_nll": reward_nll.item(),
+                   "kl": kl_post.item()}
+        return loss, latent, metrics
+
+    def update(self, batch: dict[str, torch.Tensor]) -> tuple[Latent, dict[str, float]]:
+        """One Adam step on the new parts; returns the (detached) posterior latents as imagination starts."""
+        loss, latent, metrics = self.loss(batch)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        metrics["model_grad_norm"] = nn.utils.clip_grad_norm_(self.trainable_parameters(), self.grad_clip).item()
+        self.optimizer.step()
+        detached = Latent(*(None if s is None else RSSMState(s.deter.detach(), s.stoch.detach()) for s in latent))
+        return detached, metrics
+
+    # -- acting and imagining -----------------------------------------------------------------------
+
+    def initial(self, batch_size: int, device: torch.device) -> Latent:
+        frozen = self.frozen.rssm.initial(batch_size, device) if self.frozen is not None else None
+        return Latent(frozen, self.rssm.initial(batch_size, device))
+
+    @torch.no_grad()
+    def observe_step(self, latent: Latent, prev_action: torch.Tensor, obs: torch.Tensor) -> Latent:
+        """Filter one real step while acting: obs uint8 [B, 3, 64, 64], prev_action [B, A]."""
+        images = preprocess(obs)
+        if self.frozen is not None:
+            cond = self.frozen_cond(obs.shape[0])
+            frozen = self.frozen.rssm.obs_step(latent.frozen, cond, self.frozen.encoder(images))[0]
+            posterior_input = self.frozen.rssm.feature(frozen)
+        else:
+            frozen, posterior_input = None, self.encoder(images)
+        new = self.rssm.obs_step(latent.new, prev_action, posterior_input)[0]
+        return Latent(frozen, new)
+
+    def imagine(self, start: Latent, policy: Callable, horizon: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Roll out `horizon` steps from every start state ([B, L, ·] flattened to N = B·L).
+
+        Returns feats z_0..z_H [H+1, N, F], rewards R(s̃_1..s̃_H) [H, N] and the actions' log-probs [H, N].
+        Gradients reach the policy through the new stream's transitions and the reward head, whose own
+        parameters record no gradient here (they are trained by the model loss only).
+        """
+        flat = Latent(*(None if s is None else RSSMState(s.deter.flatten(0, 1), s.stoch.flatten(0, 1)) for s in start))
+        frozen, new = flat
+        feats, new_feats, log_probs = [self.feature(flat)], [], []
+        with no_param_grads(self):
+            for _ in range(horizon):
+                dist = policy(feats[-1].detach())
+                action = dist.rsample()  # [N, A]
+                log_probs.append(dist.log_prob(action))
+                if frozen is not None:
+                    with torch.no_grad():
+                        deter, means, _ = self.frozen.rssm.img_step(frozen, self.frozen_cond(action.shape[0]))
+                        frozen = RSSMState(deter, means.mean(0))  # ensemble mean μ̄
+                deter, mean, std = self.rssm.img_step(new, action)
+                new = RSSMState(deter, mean[0] + std[0] * torch.randn_like(std[0]))
+                new_feats.append(self.rssm.feature(new))
+                feats.append(self.feature(Latent(frozen, new)))
+            rewards = self.reward(torch.stack(new_feats)).squeeze(-1)  # [H, N]
+        return torch.stack(feats), rewards, torch.stack(log_probs)

@@ -1,0 +1,132 @@
+"""`hauwm pretrain …`: fit (LightningCLI), export, analyze.
+
+    hauwm pretrain fit --config configs/pretrain/ssv2.yaml [--data.shards DIR] [--trainer.max_steps N] ...
+    hauwm pretrain fit --config configs/pretrain/ssv2.yaml --ckpt_path RUN/checkpoints/last.ckpt   (resume)
+    hauwm pretrain validate --config ... --ckpt_path CKPT
+    hauwm pretrain export CKPT --out DIR
+    hauwm pretrain analyze --model DIR [--model DIR2] --shards DIR --out DIR
+
+Every setting of the module (model.*), the data module (data.*) and the Trainer (trainer.*) can be
+overridden on the command line after --config; `hauwm pretrain fit --help` lists them. Checkpoints go to
+`<trainer.default_root_dir>/checkpoints/` (last.ckpt is always the newest), TensorBoard logs and the
+resolved config.yaml to `<trainer.default_root_dir>/lightning_logs/version_N/`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+USAGE = __doc__.split("\n\n")[1]
+LIGHTNING_COMMANDS = ("fit", "validate")
+
+
+def lightning_cli(args: list[str]):
+    """Run a LightningCLI subcommand over PretrainModule and the shard DataModule."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.cli import LightningCLI
+
+    from data_pipeline.datamodule import ShardDataModule
+    from data_pipeline.loader import read_manifest
+    from model.module import ConfigError, PretrainModule
+
+    class PretrainCLI(LightningCLI):
+        def add_arguments_to_parser(self, parser) -> None:
+            parser.link_arguments("data.k_max", "model.k_max")  # one K_max for sampling and validation
+
+        def before_instantiate_classes(self) -> None:
+            config = self.config[self.subcommand]
+            if not config.data.shards:
+                raise ConfigError("no shard directory: pass --data.shards DIR (built by `hauwm shards build`)")
+            read_manifest(config.data.shards)  # refuses a missing or unfinished shard directory, with the fix
+            if config.ckpt_path and not Path(config.ckpt_path).is_file():
+                raise ConfigError(f"--ckpt_path {config.ckpt_path} does not exist")
+            trainer = config.trainer
+            no_cuda = trainer.accelerator == "cpu" or (trainer.accelerator == "auto" and not torch.cuda.is_available())
+            if str(trainer.precision) in ("16-mixed", "16") and no_cuda:
+                print("hauwm pretrain: float16 autocast needs a GPU; using bf16-mixed on CPU", file=sys.stderr)
+                trainer.precision = "bf16-mixed"
+
+        def before_fit(self) -> None:
+            for callback in self.trainer.checkpoint_callbacks:
+                if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
+                    callback.dirpath = str(Path(self.trainer.default_root_dir) / "checkpoints")
+
+    return PretrainCLI(
+        PretrainModule,
+        ShardDataModule,
+        args=args,
+        save_config_kwargs={"overwrite": True},
+        parser_kwargs={"description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video shards."},
+    )
+
+
+def export_command(argv: list[str]) -> int:
+    from model.export import export_frozen, world_model_from_checkpoint
+
+    parser = argparse.ArgumentParser(prog="hauwm pretrain export", description="Write the frozen export of a checkpoint.")
+    parser.add_argument("checkpoint", type=Path, help="a Lightning checkpoint of `hauwm pretrain fit` (e.g. RUN/checkpoints/last.ckpt)")
+    parser.add_argument("--out", type=Path, required=True, help="directory for weights.safetensors and config.json")
+    args = parser.parse_args(argv)
+    model, provenance = world_model_from_checkpoint(args.checkpoint)
+    out = export_frozen(model, args.out, provenance)
+    print(f"exported {args.checkpoint} (step {provenance['global_step']}, M={model.config['ensemble']}) to {out}")
+    return 0
+
+
+def analyze_command(argv: list[str]) -> int:
+    from model.analyze import analyze
+
+    parser = argparse.ArgumentParser(
+        prog="hauwm pretrain analyze",
+        description="Disagreement against the horizon k (with/without HCU) and imagined rollouts per head (fig. 5).",
+    )
+    parser.add_argument("--model", type=Path, action="append", required=True,
+                        help="an export directory (`hauwm pretrain export`); give two to compare, e.g. with and without HCU")
+    parser.add_argument("--shards", type=Path, required=True, help="shard directory with a validation split")
+    parser.add_argument("--out", type=Path, required=True, help="directory for the PNG plots and figures.json")
+    parser.add_argument("--split", default="validation")
+    parser.add_argument("--batches", type=int, default=8, help="held-out batches to average over")
+    parser.add_argument("--batch-size", type=int, default=16)
+    parser.add_argument("--seq-len", type=int, default=12)
+    parser.add_argument("--k-max", type=int, default=None, help="largest gap k (default: the first model's training K_max)")
+    parser.add_argument("--heads", type=int, default=4, help="ensemble heads shown side by side in the rollout figure")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    written = analyze(args.model, args.shards, args.out, split=args.split, batches=args.batches,
+                      batch_size=args.batch_size, seq_len=args.seq_len, k_max=args.k_max, heads=args.heads, seed=args.seed)
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(f"usage:\n{USAGE}")
+        return 0
+    from data_pipeline.loader import LoaderError
+    from model.export import ExportError
+    from model.module import ConfigError
+
+    command = argv[0]
+    try:
+        if command in LIGHTNING_COMMANDS:
+            lightning_cli(argv)
+            return 0
+        if command == "export":
+            return export_command(argv[1:])
+        if command == "analyze":
+            return analyze_command(argv[1:])
+    except (ConfigError, ExportError, LoaderError) as err:
+        print(f"hauwm pretrain {command}: error: {err}", file=sys.stderr)
+        return 2
+    print(f"hauwm pretrain: unknown command {command!r}\nusage:\n{USAGE}", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

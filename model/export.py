@@ -1,0 +1,142 @@
+"""The frozen export handed from pre-training to fine-tuning (docs/architecture.md section 4).
+
+    DIR/weights.safetensors   the WorldModel's state dict (encoder, rssm, decoder; float32)
+    DIR/config.json           schema_version, the WorldModel constructor arguments (sizes, M, the temporal
+                              embedding's mode, dim and reference length), the image normalisation, provenance
+
+Loading reads JSON and safetensors only — nothing is unpickled — and checks the schema version and every
+tensor's name and shape against the architecture the config describes.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from model.world_model import MODEL_KEYS, WorldModel
+
+SCHEMA_VERSION = 1
+KIND = "hauwm-pretrained-world-model"
+WEIGHTS_FILE = "weights.safetensors"
+CONFIG_FILE = "config.json"
+NORMALISATION = {"formula": "float32 = uint8 / 255 - 0.5", "scale": 1 / 255, "offset": -0.5, "channels": "RGB"}
+
+
+class ExportError(ValueError):
+    """An export directory that cannot be loaded; the message says which file and what to do."""
+
+
+class FrozenWorldModel(WorldModel):
+    """A WorldModel loaded from an export: every parameter frozen, always in eval mode.
+
+    `config` is the whole config.json (constructor arguments plus normalisation and provenance).
+    """
+
+    def train(self, mode: bool = True) -> "FrozenWorldModel":
+        return super().train(False)
+
+
+def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, Any] | None = None) -> Path:
+    """Write weights.safetensors and config.json for `model` into out_dir; returns out_dir."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tensors = {name: t.detach().float().contiguous().cpu() for name, t in model.state_dict().items()}
+    save_file(tensors, str(out / WEIGHTS_FILE), metadata={"schema_version": str(SCHEMA_VERSION), "kind": KIND})
+    config = {
+        "schema_version": SCHEMA_VERSION,
+        "kind": KIND,
+        **model.config,
+        "feature_dim": model.rssm.feature_dim,
+        "image_shape": [3, 64, 64],
+        "normalisation": NORMALISATION,
+        "provenance": provenance or {},
+    }
+    (out / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
+    return out
+
+
+def read_config(export_dir: str | Path) -> dict[str, Any]:
+    """config.json of an export, with its schema version and model keys checked."""
+    path = Path(export_dir) / CONFIG_FILE
+    if not path.is_file():
+        raise ExportError(
+            f"{path} not found: {export_dir} is not a HAUWM export; create one with "
+            "`hauwm pretrain export CKPT --out DIR`"
+        )
+    try:
+        config = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ExportError(f"{path} is not valid JSON ({err}); re-export the checkpoint") from None
+    version = config.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise ExportError(
+            f"{path} has schema_version {version!r}, this code reads version {SCHEMA_VERSION}; "
+            "re-export the checkpoint with this version of hauwm"
+        )
+    missing = [key for key in MODEL_KEYS if key not in config]
+    if missing:
+        raise ExportError(f"{path} lacks {missing}; re-export the checkpoint with this version of hauwm")
+    return config
+
+
+def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> FrozenWorldModel:
+    """Rebuild the exported world model (frozen, eval mode) from DIR without unpickling anything."""
+    config = read_config(export_dir)
+    weights_path = Path(export_dir) / WEIGHTS_FILE
+    if not weights_path.is_file():
+        raise ExportError(f"{weights_path} not found; re-export the checkpoint into {export_dir}")
+    try:
+        tensors = load_file(str(weights_path), device=str(device))
+    except (SafetensorError, OSError) as err:
+        raise ExportError(f"{weights_path} cannot be read as safetensors ({err}); re-export the checkpoint") from None
+    model = FrozenWorldModel(**{key: config[key] for key in MODEL_KEYS})
+    expected = {name: tuple(t.shape) for name, t in model.state_dict().items()}
+    found = {name: tuple(t.shape) for name, t in tensors.items()}
+    problems = [f"missing {name}" for name in expected.keys() - found.keys()]
+    problems += [f"unexpected {name}" for name in found.keys() - expected.keys()]
+    problems += [
+        f"{name}: file has {found[name]}, config.json implies {expected[name]}"
+        for name in expected.keys() & found.keys()
+        if found[name] != expected[name]
+    ]
+    if problems:
+        raise ExportError(
+            f"{weights_path} does not match {Path(export_dir) / CONFIG_FILE}: " + "; ".join(sorted(problems)[:8])
+            + (f" (and {len(problems) - 8} more)" if len(problems) > 8 else "")
+        )
+    model.load_state_dict(tensors)
+    model.config = config
+    return model.to(device).requires_grad_(False).eval()
+
+
+def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dict[str, Any]]:
+    """The WorldModel inside a `hauwm pretrain fit` checkpoint and its provenance (read with weights_only=True)."""
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise ExportError(f"checkpoint {path} not found (fit writes RUN/checkpoints/last.ckpt)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # a truncated file, or one holding more than tensors and plain data
+        raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit` ({err})") from None
+    hparams = state.get("hyper_parameters", {})
+    missing = [key for key in MODEL_KEYS if key not in hparams]
+    if missing:
+        raise ExportError(f"{path} is not a `hauwm pretrain fit` checkpoint (its hyper_parameters lack {missing})")
+    model = WorldModel(**{key: hparams[key] for key in MODEL_KEYS})
+    prefix = "world_model."
+    model.load_state_dict({name[len(prefix):]: t for name, t in state["state_dict"].items() if name.startswith(prefix)})
+    log_lambda = state["state_dict"].get("log_lambda")
+    provenance = {
+        "checkpoint": str(path.resolve()),
+        "global_step": int(state.get("global_step", 0)),
+        "k_max": hparams.get("k_max"),
+        "hcu": hparams.get("lambda_init", 0) > 0,
+        "lambda_init": hparams.get("lambda_init"),
+        "lambda_final": float(log_lambda.exp()) if log_lambda is not None and hparams.get("lambda_init", 0) > 0 else 0.0,
+    }
+    return model, provenance

@@ -1,0 +1,151 @@
+"""Ensemble RSSM: one GRU deterministic path, one posterior, M Gaussian prior heads (paper eq. 1, appendix D.1).
+
+    deter_t          = GRU(deter_{t-1}, MLP([stoch_{t-1}; Δt_k^e]))      the gap embedding enters where an action would
+    prior head i     : N(μ_i(deter_t), σ_i(deter_t)²)       i = 1..M   (eq. 1; all M heads in one batched matmul)
+    posterior        : N(μ_q(deter_t, e_t), σ_q(deter_t, e_t)²),  stoch_t ~ posterior   (e_t: image embedding)
+
+Distribution parameters are always float32 (softplus std with a floor of min_std), also under autocast,
+because 16-bit RSSMs are known to overflow in the std/KL path.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class RSSMState(NamedTuple):
+    deter: torch.Tensor  # [B, deter]
+    stoch: torch.Tensor  # [B, stoch]
+
+
+class Observation(NamedTuple):
+    """A filtered sequence: the posterior states and every head's prior, time along dim 1 (heads first for priors)."""
+
+    deter: torch.Tensor  # [B, L, deter]
+    stoch: torch.Tensor  # [B, L, stoch]   posterior sample
+    post_mean: torch.Tensor  # [B, L, stoch]
+    post_std: torch.Tensor  # [B, L, stoch]
+    prior_mean: torch.Tensor  # [M, B, L, stoch]
+    prior_std: torch.Tensor  # [M, B, L, stoch]
+
+    def state(self, t: int) -> RSSMState:
+        return RSSMState(self.deter[:, t], self.stoch[:, t])
+
+
+class EnsembleLinear(nn.Module):
+    """M independent linear layers applied as one batched matmul: [M, B, in] (or shared [B, in]) → [M, B, out]."""
+
+    def __init__(self, ensemble: int, in_features: int, out_features: int):
+        super().__init__()
+        bound = 1.0 / math.sqrt(in_features)  # nn.Linear's default init, per head
+        self.weight = nn.Parameter(torch.empty(ensemble, in_features, out_features).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(ensemble, 1, out_features).uniform_(-bound, bound))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.dim() == 2:  # the same input for every head
+            x = x.unsqueeze(0).expand(self.weight.shape[0], -1, -1)
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+def _mean_std(raw: torch.Tensor, min_std: float) -> tuple[torch.Tensor, torch.Tensor]:
+    mean, std = raw.float().chunk(2, dim=-1)  # float32 even under autocast
+    return mean, F.softplus(std) + min_std
+
+
+class EnsembleRSSM(nn.Module):
+    def __init__(
+        self,
+        embed_dim: int,
+        cond_dim: int,
+        deter: int = 200,
+        stoch: int = 30,
+        hidden: int = 200,
+        ensemble: int = 7,
+        min_std: float = 0.1,
+    ):
+        super().__init__()
+        if ensemble < 1:
+            raise ValueError(f"ensemble (M) must be ≥ 1, got {ensemble}")
+        self.deter_dim, self.stoch_dim, self.ensemble, self.min_std = deter, stoch, ensemble, min_std
+        self.img_in = nn.Sequential(nn.Linear(stoch + cond_dim, hidden), nn.ELU())
+        self.cell = nn.GRUCell(hidden, deter)
+        self.prior_hidden = EnsembleLinear(ensemble, deter, hidden)
+        self.prior_out = EnsembleLinear(ensemble, hidden, 2 * stoch)
+        self.posterior = nn.Sequential(nn.Linear(deter + embed_dim, hidden), nn.ELU(), nn.Linear(hidden, 2 * stoch))
+
+    @property
+    def feature_dim(self) -> int:
+        return self.deter_dim + self.stoch_dim
+
+    def initial(self, batch_size: int, device: torch.device | str | None = None) -> RSSMState:
+        return RSSMState(
+            torch.zeros(batch_size, self.deter_dim, device=device),
+            torch.zeros(batch_size, self.stoch_dim, device=device),
+        )
+
+    def feature(self, state: RSSMState) -> torch.Tensor:
+        return torch.cat([state.deter, state.stoch.to(state.deter.dtype)], dim=-1)  # [..., deter + stoch]
+
+    def heads(self, deter: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """All M prior heads at once: deter [B, D] → mean, std [M, B, S] float32."""
+        hidden = F.elu(self.prior_hidden(deter))  # [M, B, H]
+        return _mean_std(self.prior_out(hidden), self.min_std)
+
+    def img_step(self, prev: RSSMState, cond: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One transition without an observation: → deter [B, D], prior mean and std [M, B, S]."""
+        x = self.img_in(torch.cat([prev.stoch, cond.to(prev.stoch.dtype)], dim=-1))
+        deter = self.cell(x, prev.deter.to(x.dtype))
+        return (deter, *self.heads(deter))
+
+    def obs_step(
+        self,
+        prev: RSSMState,
+        cond: torch.Tensor,
+        embed: torch.Tensor,
+        generator: torch.Generator | None = None,
+    ) -> tuple[RSSMState, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Transition plus posterior: → (post state, post mean, post std [B, S], prior mean, prior std [M, B, S])."""
+        deter, prior_mean, prior_std = self.img_step(prev, cond)
+        post_mean, post_std = _mean_std(self.posterior(torch.cat([deter, embed.to(deter.dtype)], dim=-1)), self.min_std)
+        noise = torch.randn(post_mean.shape, generator=generator, device=post_mean.device, dtype=post_mean.dtype)
+        stoch = post_mean + post_std * noise
+        return RSSMState(deter, stoch), post_mean, post_std, prior_mean, prior_std
+
+    def observe(
+        self,
+        embeds: torch.Tensor,
+        conds: torch.Tensor,
+        state: RSSMState | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Observation:
+        """Filter a sequence: embeds [B, L, E], conds [B, L, C] (cond of the gap before each frame) → Observation."""
+        if state is None:
+            state = self.initial(embeds.shape[0], embeds.device)
+        steps = []
+        for t in range(embeds.shape[1]):
+            state, *dists = self.obs_step(state, conds[:, t], embeds[:, t], generator)
+            steps.append((state.deter, state.stoch, *dists))
+        deter, stoch, post_mean, post_std, prior_mean, prior_std = zip(*steps)
+        return Observation(
+            torch.stack(deter, 1), torch.stack(stoch, 1), torch.stack(post_mean, 1), torch.stack(post_std, 1),
+            torch.stack(prior_mean, 2), torch.stack(prior_std, 2),  # heads stay in front: [M, B, L, S]
+        )
+
+    def imagine(self, state: RSSMState, conds: torch.Tensor, head: int | None = None) -> tuple[RSSMState, torch.Tensor]:
+        """Open-loop rollout over conds [B, H, C]: each next stoch is the ensemble mean μ̄ (head=None) or head i's mean.
+
+        Returns the visited states (deter [B, H, D], stoch [B, H, S]) and every head's mean [M, B, H, S].
+        """
+        deters, stochs, means = [], [], []
+        for t in range(conds.shape[1]):
+            deter, mean, _ = self.img_step(state, conds[:, t])
+            state = RSSMState(deter, mean.mean(0) if head is None else mean[head])
+            deters.append(state.deter)
+            stochs.append(state.stoch)
+            means.append(mean)
+        return RSSMState(torch.stack(deters, 1), torch.stack(stochs, 1)), torch.stack(means, 2)

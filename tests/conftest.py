@@ -1,0 +1,49 @@
+"""Shared fixtures: a small SSv2-format sample tree and shards built from it (session-scoped, a few seconds).
+
+- `sample_ssv2`: `Path` to a `hauwm shards sample-data --clips 24 --with-broken` tree
+  (`annotations/`, `videos/`, `broken.json` listing the broken entries: id → kind).
+- `built_shards`: `Path` to a shard directory built from the clean entries of that tree (broken entries
+  removed from the label files), train and validation, `--clips-per-shard 4`: train has 5 shards of
+  4, 4, 4, 4, 2 clips, validation one shard of 3 clips. Clips have 24–60 frames at 64×64.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from data_pipeline.build import BuildConfig, build
+from data_pipeline.sample_data import make_sample_data
+from data_pipeline.ssv2 import annotation_path
+
+
+@pytest.fixture(scope="session")
+def sample_ssv2(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("ssv2")
+    make_sample_data(root, clips=24, with_broken=True, seed=0, workers=2)
+    return root
+
+
+@pytest.fixture(scope="session")
+def clean_annotations(sample_ssv2, tmp_path_factory) -> Path:
+    """The sample tree's label files without the broken entries (videos stay in `sample_ssv2/videos`)."""
+    broken = json.loads((sample_ssv2 / "broken.json").read_text())
+    clean = tmp_path_factory.mktemp("clean-annotations")
+    for name in ("train", "validation", "test", "labels"):
+        entries = json.loads(annotation_path(sample_ssv2 / "annotations", name).read_text())
+        if name != "labels":
+            entries = [entry for entry in entries if entry["id"] not in broken]
+        annotation_path(clean, name).write_text(json.dumps(entries))
+    return clean
+
+
+@pytest.fixture(scope="session")
+def built_shards(sample_ssv2, clean_annotations, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("shards")
+    config = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=out,
+                         splits=["train", "validation"], clips_per_shard=4, workers=2, max_error_rate=0.0)
+    manifest, status = build(config, log=lambda message: None)
+    assert status == 0 and manifest is not None
+    return out

@@ -1,0 +1,197 @@
+"""`hauwm shards build`: broken entries, faithful frames, reproducibility, resume after SIGKILL, refusals."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tarfile
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from data_pipeline import workers
+from data_pipeline.build import BuildConfig, BuildError, build
+from data_pipeline.sample_data import BROKEN_KINDS
+from data_pipeline.shard_format import decode_frames
+
+
+def quiet(message):
+    pass
+
+
+def tar_members(path):
+    with tarfile.open(path) as tar:
+        return {member.name: tar.extractfile(member).read() for member in tar}
+
+
+def directory_bytes(path):
+    return {p.name: p.read_bytes() for p in sorted(path.iterdir())}
+
+
+def build_cli(*args):
+    return [sys.executable, "-m", "hauwm.cli", "shards", "build", *map(str, args)]
+
+
+@pytest.fixture(scope="module")
+def broken_build(sample_ssv2, tmp_path_factory):
+    out = tmp_path_factory.mktemp("broken-build")
+    config = BuildConfig(annotations=sample_ssv2 / "annotations", videos=sample_ssv2 / "videos", out=out,
+                         splits=["train", "validation", "test"], clips_per_shard=8, workers=2, max_error_rate=0.5)
+    manifest, status = build(config, log=quiet)
+    return config, manifest, status
+
+
+def test_every_broken_entry_is_recorded_with_its_reason_and_kept_out_of_the_tars(sample_ssv2, broken_build):
+    config, manifest, status = broken_build
+    assert status == 0
+    broken = json.loads((sample_ssv2 / "broken.json").read_text())
+    errors = [json.loads(line) for line in (config.out / "errors.jsonl").read_text().splitlines()]
+    assert {e["id"]: e["reason"] for e in errors} == {i: BROKEN_KINDS[kind] for i, kind in broken.items()}
+    assert all(e["path"].endswith(f"{e['id']}.webm") and e["detail"] for e in errors)
+    assert manifest["errors"]["total"] == len(broken)
+    stored = set()
+    for split, counts in manifest["splits"].items():
+        for shard in counts["shards"]:
+            members = tar_members(config.out / shard["name"])
+            ids = {name.split(".")[0] for name in members}
+            assert len(ids) == shard["clips"] and set(members) == {f"{i}.{e}" for i in ids for e in ("jpgs", "json")}
+            for name, data in members.items():
+                if name.endswith(".json"):
+                    metadata = json.loads(data)
+                    assert (metadata["class_index"] == -1) == (split == "test")
+            stored |= ids
+    assert not stored & set(broken)
+    assert sum(c["clips"] for c in manifest["splits"].values()) == 24
+
+
+def test_error_rate_above_the_limit_fails_but_keeps_the_shards(broken_build):
+    config, _, _ = broken_build
+    config.max_error_rate = 0.01
+    lines = []
+    manifest, status = build(config, log=lines.append)  # a resume: every shard verified and kept
+    assert status == 1 and manifest is not None
+    assert any("0 to build" in line for line in lines)
+    assert any("more than --max-error-rate 0.01" in line for line in lines)
+
+
+def test_a_hanging_decoder_is_killed_and_the_build_goes_on(sample_ssv2, clean_annotations, tmp_path, monkeypatch):
+    real = workers.process_clip
+    hang_id = json.loads((clean_annotations / "something-something-v2-validation.json").read_text())[1]["id"]
+
+    def hangs_on_one_clip(path, settings):
+        if path.stem == hang_id:
+            time.sleep(3600)
+        return real(path, settings)
+
+    monkeypatch.setattr(workers, "process_clip", hangs_on_one_clip)  # the forked workers inherit it
+    config = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
+                         splits=["validation"], workers=2, timeout=1.0, max_error_rate=0.5)
+    manifest, status = build(config, log=quiet)
+    errors = [json.loads(line) for line in (tmp_path / "errors.jsonl").read_text().splitlines()]
+    assert [(e["id"], e["reason"]) for e in errors] == [(hang_id, "timeout")]
+    assert manifest["splits"]["validation"]["clips"] == 2 and status == 0
+
+
+def decode_with_opencv(path, size):
+    """An independent decode: OpenCV, every frame, squashed with INTER_AREA."""
+    capture, frames = cv2.VideoCapture(str(path)), []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            return np.stack(frames)
+        frames.append(cv2.resize(frame[:, :, ::-1], (size, size), interpolation=cv2.INTER_AREA))
+
+
+def test_stored_frames_equal_an_independent_decode(sample_ssv2, clean_annotations, built_shards, tmp_path):
+    raw = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
+                      splits=["validation"], encoding="raw", max_error_rate=0.0)
+    build(raw, log=quiet)
+    for directory, extension in ((tmp_path, "npy"), (built_shards, "jpgs")):
+        members = tar_members(directory / "validation-000000.tar")
+        ids = sorted({name.split(".")[0] for name in members})
+        assert len(ids) == 3
+        for clip_id in ids:
+            stored = decode_frames(members[f"{clip_id}.{extension}"], extension)
+            metadata = json.loads(members[f"{clip_id}.json"])
+            source = decode_with_opencv(sample_ssv2 / "videos" / f"{clip_id}.webm", 64)
+            assert stored.shape == source.shape == (metadata["num_frames"], 64, 64, 3)
+            assert metadata["source_height"] == 240 and metadata["fps"] == 12.0
+            if extension == "npy":
+                np.testing.assert_array_equal(stored, source)
+            else:  # JPEG q90 4:4:4: close (about 42 dB PSNR), not equal
+                mse = np.mean((stored.astype(float) - source) ** 2)
+                assert 10 * np.log10(255**2 / mse) > 38
+
+
+def test_resume_after_sigkill_is_byte_identical(sample_ssv2, clean_annotations, tmp_path):
+    common = ["--annotations", clean_annotations, "--videos", sample_ssv2 / "videos", "--split", "train",
+              "--split", "validation", "--clips-per-shard", "2", "--max-error-rate", "0"]
+    reference = tmp_path / "reference"
+    subprocess.run(build_cli(*common, "--out", reference, "--workers", "2"), check=True, capture_output=True)
+    for kill_after_stats in (0, 4):  # kill while the first shard is written, and later on
+        out = tmp_path / f"killed-{kill_after_stats}"
+        process = subprocess.Popen(build_cli(*common, "--out", out, "--workers", "1"), start_new_session=True,
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            if kill_after_stats == 0 and out.is_dir() and any(out.glob(".*.partial")):
+                break
+            if kill_after_stats and out.is_dir() and len(list(out.glob("*.stats.json"))) >= kill_after_stats:
+                break
+            time.sleep(0.002)
+        os.killpg(process.pid, signal.SIGKILL)  # the build and its decoder processes
+        process.wait()
+        assert not (out / "manifest.json").exists(), "the build finished before it could be killed"
+        finished = subprocess.run(build_cli(*common, "--out", out, "--workers", "2"), capture_output=True, text=True)
+        assert finished.returncode == 0, finished.stderr
+        assert directory_bytes(out) == directory_bytes(reference)
+
+
+def test_a_damaged_shard_is_rebuilt_on_resume(sample_ssv2, clean_annotations, tmp_path):
+    config = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
+                         splits=["validation"], max_error_rate=0.0)
+    build(config, log=quiet)
+    before = directory_bytes(tmp_path)
+    shard = tmp_path / "validation-000000.tar"
+    shard.write_bytes(shard.read_bytes()[:-2000] + b"\0" * 2000)  # same size, different bytes
+    lines = []
+    build(config, log=lines.append)
+    assert any("1 to build" in line for line in lines)
+    assert directory_bytes(tmp_path) == before
+
+
+def test_changed_settings_are_refused(sample_ssv2, clean_annotations, tmp_path):
+    common = ["--annotations", clean_annotations, "--videos", sample_ssv2 / "videos", "--split", "validation",
+              "--out", tmp_path]
+    subprocess.run(build_cli(*common), check=True, capture_output=True)
+    refused = subprocess.run(build_cli(*common, "--size", "32"), capture_output=True, text=True)
+    assert refused.returncode == 2
+    assert "size: was 64, now 32" in refused.stderr and "new --out" in refused.stderr
+    assert "Traceback" not in refused.stderr
+
+
+def test_parts_build_the_same_shards_and_the_last_writes_the_manifest(sample_ssv2, clean_annotations, built_shards,
+                                                                      tmp_path):
+    def config(part):
+        return BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
+                           splits=["train", "validation"], clips_per_shard=4, part=part, num_parts=2,
+                           max_error_rate=0.0)
+    manifest, status = build(config(1), log=quiet)
+    assert manifest is None and status == 0 and not (tmp_path / "manifest.json").exists()
+    assert sorted(p.name for p in tmp_path.glob("*.tar")) == ["train-000001.tar", "train-000003.tar"]
+    manifest, status = build(config(0), log=quiet)
+    assert manifest is not None
+    assert directory_bytes(tmp_path) == directory_bytes(built_shards)
+
+
+def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
+    config = BuildConfig(annotations=tmp_path / "nowhere", videos=sample_ssv2 / "videos", out=tmp_path / "out")
+    result = subprocess.run(build_cli("--annotations", tmp_path / "nowhere", "--videos", sample_ssv2 / "videos",
+                                      "--out", tmp_path / "out"), capture_output=True, text=True)
+    assert result.returncode == 2 and "labels.json: file not found" in result.stderr
+    config.annotations, config.videos = sample_ssv2 / "annotations", tmp_path / "no-videos"
+    with pytest.raises(BuildError, match="--videos .*no-videos: not a directory"):
+        build(config, log=quiet)

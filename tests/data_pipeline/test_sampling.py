@@ -1,0 +1,57 @@
+"""Variable-gap sampling: gaps i.i.d. U{1..K_max}, the too-short policy, indices inside the clip."""
+
+import itertools
+from collections import Counter
+
+import numpy as np
+from scipy.stats import chisquare
+
+from data_pipeline.sampling import gaps_of, sample_gaps, sample_indices
+
+
+def test_gaps_are_iid_uniform_on_clips_long_enough():
+    rng = np.random.default_rng(0)
+    length, k_max, num_frames = 8, 5, 1 + 7 * 5  # every draw fits
+    gaps = np.stack([gaps_of(sample_indices(num_frames, length, k_max, rng)) for _ in range(4000)])
+    assert (gaps[:, 0] == 0).all()
+    counts = np.bincount(gaps[:, 1:].ravel(), minlength=k_max + 1)[1:]
+    assert chisquare(counts).pvalue > 1e-3, counts
+    pairs = Counter(zip(gaps[:, 1].tolist(), gaps[:, 2].tolist()))  # independence of neighbouring gaps
+    assert chisquare([pairs[p] for p in itertools.product(range(1, 6), repeat=2)]).pvalue > 1e-3
+
+
+def test_short_clips_draw_every_fitting_gap_vector_equally_often():
+    rng = np.random.default_rng(1)
+    num_gaps, k_max, budget = 3, 4, 6  # 3 gaps from U{1..4} summing to at most 6
+    fitting = [v for v in itertools.product(range(1, 5), repeat=3) if sum(v) <= budget]
+    counts = Counter(tuple(sample_gaps(num_gaps, k_max, budget, rng).tolist()) for _ in range(20 * len(fitting) * 20))
+    assert set(counts) == set(fitting)
+    assert chisquare([counts[v] for v in fitting]).pvalue > 1e-3
+
+
+def test_too_short_policy():
+    rng = np.random.default_rng(2)
+    assert sample_indices(15, 16, 5, rng) is None  # fewer frames than L: skipped
+    assert sample_indices(16, 16, 5, rng).tolist() == list(range(16))  # exactly L frames: all gaps 1
+    assert sample_indices(0, 1, 5, rng) is None  # an empty clip holds nothing
+    assert sample_indices(1, 1, 5, rng).tolist() == [0]  # L = 1: one frame, no gap
+
+
+def test_indices_lie_inside_the_clip_and_increase():
+    rng = np.random.default_rng(3)
+    for _ in range(500):
+        num_frames, length, k_max = int(rng.integers(1, 130)), int(rng.integers(1, 20)), int(rng.integers(1, 11))
+        indices = sample_indices(num_frames, length, k_max, rng)
+        if num_frames < length:
+            assert indices is None
+            continue
+        gaps = np.diff(indices)
+        assert len(indices) == length and indices[0] >= 0 and indices[-1] < num_frames
+        assert ((gaps >= 1) & (gaps <= k_max)).all()
+
+
+def test_starts_cover_the_whole_clip():
+    rng = np.random.default_rng(4)
+    starts = {int(sample_indices(40, 4, 2, rng)[0]) for _ in range(3000)}
+    ends = {int(sample_indices(40, 4, 2, rng)[-1]) for _ in range(3000)}
+    assert 0 in starts and 39 in ends

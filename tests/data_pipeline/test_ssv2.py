@@ -1,0 +1,63 @@
+"""Parsing SSv2's label files: bracket stripping, the unlabelled test split, clear errors."""
+
+import json
+
+import pytest
+
+from data_pipeline.ssv2 import NO_LABEL, AnnotationError, class_name, load_labels, load_split
+
+
+def write(directory, name, data):
+    (directory / f"something-something-v2-{name}.json").write_text(json.dumps(data))
+
+
+@pytest.fixture
+def annotations(tmp_path):
+    write(tmp_path, "labels", {
+        "Putting something onto a slanted surface but it doesn't glide down": "0",
+        "Tipping something with something in it over, so something in it falls out": "1",
+        "Pushing something from left to right": "2",
+    })
+    write(tmp_path, "train", [
+        {"id": "78687", "label": "putting a pen onto a book but it doesn't glide down",
+         "template": "Putting [something] onto [a slanted surface] but it doesn't glide down",
+         "placeholders": ["a pen", "a book"]},
+        {"id": "42326", "label": "tipping cup with water in it over, so water falls out",
+         "template": "Tipping [something] with [something in it] over, so [something in it] falls out",
+         "placeholders": ["cup", "water", "water"]},
+        {"id": "3", "label": "pushing a box from left to right", "template": "Pushing [something] from left to right",
+         "placeholders": ["a box"]},
+    ])
+    write(tmp_path, "test", [{"id": "1420"}, {"id": "55"}])
+    return tmp_path
+
+
+def test_class_name_strips_only_the_brackets():
+    assert class_name("Putting [something] onto [a slanted surface]") == "Putting something onto a slanted surface"
+    assert class_name("Tipping [something] with [something in it] over, so [something in it] falls out") == \
+        "Tipping something with something in it over, so something in it falls out"
+
+
+def test_train_records_get_class_index_caption_and_template(annotations):
+    records = load_split(annotations, "train")
+    assert [r.id for r in records] == ["78687", "42326", "3"]  # the file's order
+    assert [r.class_index for r in records] == [0, 1, 2]
+    assert records[1].caption == "tipping cup with water in it over, so water falls out"
+    assert records[1].template.startswith("Tipping [something] with [something in it]")
+
+
+def test_test_split_has_no_labels_and_needs_no_label_file(annotations):
+    (annotations / "something-something-v2-labels.json").unlink()
+    records = load_split(annotations, "test")
+    assert [(r.id, r.class_index, r.caption, r.template) for r in records] == \
+        [("1420", NO_LABEL, "", ""), ("55", NO_LABEL, "", "")]
+
+
+def test_unknown_template_and_missing_file_give_clear_errors(annotations):
+    write(annotations, "validation", [{"id": "9", "label": "x", "template": "Juggling [something]", "placeholders": []}])
+    with pytest.raises(AnnotationError, match="Juggling something.*labels.json"):
+        load_split(annotations, "validation")
+    (annotations / "something-something-v2-train.json").unlink()
+    with pytest.raises(AnnotationError, match="train.json: file not found"):
+        load_split(annotations, "train")
+    assert load_labels(annotations)["Pushing something from left to right"] == 2

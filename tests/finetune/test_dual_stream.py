@@ -1,0 +1,89 @@
+"""The dual-stream world model and agent: frozen parameters never move, new ones all learn, the frozen
+stream is conditioned on Δt^e_{k=1} + N(0, σ²) and imagines with its ensemble mean."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from finetune import load_pretrained
+from finetune.agent import Agent
+from finetune.pretrained import k1_embedding
+
+ACTION_DIM = 3
+
+
+def random_batch(cfg, rng):
+    shape = (cfg.batch_size, cfg.seq_len)
+    return {"obs": rng.integers(0, 256, (*shape, 3, 64, 64), dtype=np.uint8),
+            "action": rng.uniform(-1, 1, (*shape, ACTION_DIM)).astype(np.float32),
+            "reward": rng.normal(size=shape).astype(np.float32)}
+
+
+def make_agent(cfg, export_dir):
+    if cfg.agent == "scratch":
+        return Agent(cfg, ACTION_DIM)
+    frozen = load_pretrained(export_dir)
+    return Agent(cfg, ACTION_DIM, frozen, k1_embedding(frozen))
+
+
+@pytest.mark.parametrize("agent_kind", ["hauwm", "scratch"])
+def test_updates_leave_frozen_parameters_bit_identical_and_change_every_new_one(export_dir, tiny_config, agent_kind):
+    torch.manual_seed(0)
+    # free_nats 0: with free nats the prior legitimately gets no gradient while the KL is below them
+    cfg = tiny_config(agent=agent_kind, free_nats=0.0)
+    agent = make_agent(cfg, export_dir)
+    frozen_names = {n for n, _ in agent.named_parameters() if n.startswith("world_model.frozen.")}
+    assert (len(frozen_names) > 0) == (agent_kind == "hauwm")
+    before = {n: p.detach().clone() for n, p in agent.named_parameters()}
+    target_before = [p.clone() for p in agent.behavior.target_critic.parameters()]
+    rng = np.random.default_rng(0)
+    agent.train()
+    for _ in range(3):
+        agent.update(random_batch(cfg, rng))
+    after = dict(agent.named_parameters())
+    for name in frozen_names:
+        assert torch.equal(after[name], before[name]), name
+        assert not after[name].requires_grad and after[name].grad is None, name
+    unchanged = [n for n in before if n not in frozen_names and torch.equal(after[n], before[n])]
+    assert not unchanged, f"new parameters that did not learn: {unchanged}"
+    assert all(not torch.equal(a, b) for a, b in zip(agent.behavior.target_critic.parameters(), target_before))
+    if agent_kind == "hauwm":
+        assert not agent.world_model.frozen.training
+
+
+def test_frozen_stream_gets_the_k1_embedding_plus_sigma_noise(export_dir, tiny_config, monkeypatch):
+    torch.manual_seed(0)
+    cfg = tiny_config(batch_size=16, seq_len=32)
+    agent = make_agent(cfg, export_dir)
+    frozen = agent.world_model.frozen
+    seen = []
+    original = frozen.rssm.observe
+    monkeypatch.setattr(frozen.rssm, "observe", lambda embeds, conds, *a, **k: seen.append(conds) or original(embeds, conds, *a, **k))
+    agent.world_model.loss({k: torch.as_tensor(v) for k, v in random_batch(cfg, np.random.default_rng(1)).items()})
+    conds = seen[0]  # [B, L, temporal_dim]
+    k1 = frozen.temporal(torch.ones(()), torch.tensor(frozen.temporal.reference_length))
+    assert conds.shape == (cfg.batch_size, cfg.seq_len, k1.shape[0])
+    noise = conds - k1
+    assert noise.abs().max() > 0  # noise is there ...
+    assert abs(noise.mean().item()) < 2e-3  # ... centred on the k = 1 embedding ...
+    assert noise.std().item() == pytest.approx(0.01, rel=0.1)  # ... with σ = 0.01
+    assert not torch.allclose(conds[0, 0], conds[0, 1])  # fresh noise every step
+
+
+def test_imagination_advances_the_frozen_stream_with_its_ensemble_mean(export_dir, tiny_config):
+    torch.manual_seed(0)
+    cfg = tiny_config(noise_std=0.0)
+    agent = make_agent(cfg, export_dir)
+    wm = agent.world_model
+    start, _ = wm.observe(*(torch.as_tensor(v) for v in list(random_batch(cfg, np.random.default_rng(2)).values())[:2]))
+    feats, rewards, log_probs = wm.imagine(start, agent.behavior.actor, horizon=2)
+    n = cfg.batch_size * cfg.seq_len
+    assert feats.shape == (3, n, wm.feature_dim) and rewards.shape == (2, n) and log_probs.shape == (2, n)
+    frozen = wm.frozen.rssm
+    state = type(start.frozen)(start.frozen.deter.flatten(0, 1), start.frozen.stoch.flatten(0, 1))
+    with torch.no_grad():
+        deter, means, _ = frozen.img_step(state, wm.k1_embedding.expand(n, -1))
+    expected = torch.cat([deter, means.mean(0)], -1)
+    assert torch.allclose(feats[1, :, : frozen.feature_dim], expected, atol=1e-6)

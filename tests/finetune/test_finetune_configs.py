@@ -1,0 +1,40 @@
+"""configs/finetune: one config per paper task with Table 3's budgets; config loading errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from finetune.config import ConfigError, load_config, parse_override
+from finetune.envs import PAPER_TASKS
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "finetune"
+
+
+@pytest.mark.parametrize("task", PAPER_TASKS)
+def test_every_paper_task_has_a_config_with_the_table3_budget(task):
+    cfg = load_config(CONFIGS / f"{task}.yaml")
+    assert cfg.task == task and cfg.agent == "hauwm"
+    assert cfg.steps == (1_000_000 if task.startswith("dmc") else 250_000)
+    assert (cfg.batch_size, cfg.seq_len, cfg.replay_capacity, cfg.horizon) == (32, 50, 1_000_000, 15)
+    assert (cfg.gamma, cfg.lam, cfg.model_lr, cfg.actor_lr, cfg.critic_lr) == (0.99, 0.95, 3e-4, 8e-5, 8e-5)
+    assert (cfg.units, cfg.noise_std) == (400, 0.01)
+    if task.startswith("dmc"):
+        assert cfg.action_repeat == 2
+
+
+def test_demo_config_is_small():
+    cfg = load_config(CONFIGS / "demo.yaml")
+    assert cfg.steps <= 1000 and cfg.task.startswith("dmc_")
+
+
+def test_overrides_are_typed_and_unknown_keys_rejected(tmp_path):
+    cfg = load_config(CONFIGS / "demo.yaml", dict([parse_override("steps=1e3"), parse_override("agent=scratch")]))
+    assert cfg.steps == 1000 and isinstance(cfg.steps, int) and cfg.agent == "scratch"
+    with pytest.raises(ConfigError, match="unknown setting"):
+        load_config(CONFIGS / "demo.yaml", {"stepz": 3})
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+    with pytest.raises(ConfigError, match="agent must be"):
+        load_config(None, {"agent": "apv"})

@@ -1,0 +1,79 @@
+"""Short fine-tuning runs, one task per suite: they complete, write logs and a checkpoint, and resume."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+import torch
+
+from finetune.cli import main
+from finetune.config import FinetuneConfig, load_config
+from finetune.train import CHECKPOINT, load_checkpoint, build_agent, train
+
+# (task, action repeat, agent steps per episode, env-step budget)
+SUITES = [("metaworld_drawer_close", 1, 20, 100), ("robodesk_open_slide", 2, 10, 80)]
+
+
+def rows(path):
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def tiny_run_settings(logdir, **extra) -> list[str]:
+    settings = dict(hidden=24, units=32, batch_size=4, seq_len=8, horizon=5, train_every=10, threads=1,
+                    log_every=40, fast_render=True, **extra)
+    args = ["--logdir", str(logdir), "--device", "cpu", "--no-progress"]
+    for key, value in settings.items():
+        args += ["--set", f"{key}={value}"]
+    return args
+
+
+def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(export_dir, tmp_path, capsys):
+    logdir = tmp_path / "run"
+    args = ["--config", "configs/finetune/demo.yaml", "--pretrained", str(export_dir)]
+    args += tiny_run_settings(logdir, time_limit=20, prefill=80, eval_every=100, checkpoint_every=100, eval_episodes=1)
+    assert main(args + ["--steps", "200"]) == 0
+    assert "finished dmc_cartpole_swingup" in capsys.readouterr().out
+    for name in ("train.csv", "eval.csv", "episodes.csv", "config.yaml", CHECKPOINT):
+        assert (logdir / name).exists(), name
+    assert list(logdir.glob("events.out.tfevents.*"))
+    assert len(list((logdir / "replay").glob("*.npz"))) == 5  # 200 env steps = 5 episodes of 40
+    assert [int(r["env_step"]) for r in rows(logdir / "eval.csv")] == [100, 200]
+    first = torch.load(logdir / CHECKPOINT, weights_only=True)
+    assert first["counters"]["env_step"] == 200 and first["counters"]["updates"] == 12
+
+    # resume: a fresh agent loads exactly the saved weights; the run continues from 200, not from 0
+    cfg = load_config("configs/finetune/demo.yaml", dict(hidden=24, units=32, logdir=str(logdir)))
+    agent = build_agent(cfg, 1, export_dir, torch.device("cpu"))
+    assert load_checkpoint(logdir / CHECKPOINT, agent, cfg)["env_step"] == 200
+    assert all(torch.equal(agent.trainable_state_dict()[k], v) for k, v in first["agent"].items())
+
+    assert main(args + ["--steps", "280"]) == 0
+    second = torch.load(logdir / CHECKPOINT, weights_only=True)
+    assert second["counters"]["env_step"] == 280 and second["counters"]["updates"] == 20
+    assert [int(r["env_step"]) for r in rows(logdir / "episodes.csv")][-2:] == [240, 280]
+    assert [int(r["env_step"]) for r in rows(logdir / "eval.csv")] == [100, 200, 280]
+    assert len(list((logdir / "replay").glob("*.npz"))) == 7
+
+
+def test_resume_with_another_task_is_refused(export_dir, tmp_path, capsys):
+    logdir = tmp_path / "run"
+    base = ["--pretrained", str(export_dir)] + tiny_run_settings(logdir, time_limit=10, prefill=20, eval_episodes=1)
+    assert main(["--config", "configs/finetune/demo.yaml", "--steps", "40"] + base) == 0
+    code = main(["--config", "configs/finetune/demo.yaml", "--steps", "40", "--set", "task=dmc_cheetah_run"] + base)
+    assert code == 2 and "task='dmc_cartpole_swingup'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("task, repeat, episode, steps", SUITES, ids=[s[0].split("_")[0] for s in SUITES])
+def test_each_suite_completes_a_short_run(export_dir, tiny_config, tmp_path, task, repeat, episode, steps):
+    cfg = tiny_config(task=task, action_repeat=repeat, time_limit=episode, steps=steps, prefill=steps // 2,
+                      train_every=10, eval_every=steps, eval_episodes=1, log_every=steps // 4,
+                      checkpoint_every=steps, fast_render=True, logdir=str(tmp_path / task))
+    result = train(cfg, export_dir, progress=False)
+    assert set(result) >= {"return", "normalised_return"}
+    if task.startswith("metaworld"):
+        assert 0.0 <= result["success_rate"] <= 1.0
+    assert (tmp_path / task / CHECKPOINT).exists()
+    assert rows(tmp_path / task / "train.csv")
+    assert torch.load(tmp_path / task / CHECKPOINT, weights_only=True)["counters"]["env_step"] == steps

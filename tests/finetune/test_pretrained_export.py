@@ -1,0 +1,83 @@
+"""finetune.load_pretrained: checks, freezing, clear errors; and `hauwm finetune` with a bad --pretrained."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import shutil
+
+import pytest
+import torch
+
+from finetune import load_pretrained
+from finetune.cli import main
+from finetune.pretrained import PretrainedError, k1_embedding
+
+
+@pytest.fixture
+def export_copy(export_dir, tmp_path):
+    return shutil.copytree(export_dir, tmp_path / "export")
+
+
+def test_loads_frozen_with_the_exported_sizes(export_dir, export_sizes):
+    model = load_pretrained(export_dir)
+    params = list(model.parameters())
+    assert params and not any(p.requires_grad for p in params)
+    assert not model.training and not any(m.training for m in model.modules())
+    model.train()  # an agent switching to train mode must not unfreeze or un-eval the export
+    assert not model.training
+    assert model.rssm.ensemble == export_sizes["ensemble"]
+    assert model.rssm.feature_dim == export_sizes["deter"] + export_sizes["stoch"]
+
+
+def test_k1_embedding_follows_the_exported_convention(export_dir):
+    model = load_pretrained(export_dir)
+    reference = model.temporal.reference_length
+    # relative mode: k = 1 of a clip of the reference length sits at position 1, i.e. sin(1·f), cos(1·f)
+    expected = torch.stack([model.temporal.inv_freq.sin(), model.temporal.inv_freq.cos()], -1).flatten()
+    assert torch.allclose(k1_embedding(model), expected)
+    # a clip twice the reference length puts k = 1 at position 0.5
+    half = torch.stack([(0.5 * model.temporal.inv_freq).sin(), (0.5 * model.temporal.inv_freq).cos()], -1).flatten()
+    assert torch.allclose(k1_embedding(model, clip_length=2 * reference), half)
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda d: shutil.rmtree(d), "no such directory"),
+        (lambda d: (d / "config.json").unlink(), "config.json not found"),
+        (lambda d: (d / "weights.safetensors").unlink(), "weights.safetensors not found"),
+        (lambda d: (d / "config.json").write_text("{not json"), "not valid JSON"),
+        (lambda d: _edit_config(d, schema_version=99), "schema_version 99"),
+        (lambda d: _edit_config(d, deter=25), "does not match"),
+        (lambda d: _edit_config(d, temporal_mode="log"), "temporal_mode 'log'"),
+        (lambda d: (d / "weights.safetensors").write_bytes(pickle.dumps({"w": torch.zeros(2)})), "cannot be read as safetensors"),
+    ],
+    ids=["no-dir", "no-config", "no-weights", "bad-json", "wrong-version", "wrong-shapes", "bad-embedding", "a-pickle"],
+)
+def test_bad_exports_fail_clearly(export_copy, damage, message):
+    damage(export_copy)
+    with pytest.raises(PretrainedError, match=message) as error:
+        load_pretrained(export_copy)
+    assert str(export_copy) in str(error.value)
+
+
+def _edit_config(directory, **changes):
+    config = json.loads((directory / "config.json").read_text())
+    config.update(changes)
+    (directory / "config.json").write_text(json.dumps(config))
+
+
+def test_cli_reports_a_bad_pretrained_without_a_traceback(tmp_path, capsys):
+    code = main(["--config", "configs/finetune/demo.yaml", "--pretrained", str(tmp_path / "missing"),
+                 "--logdir", str(tmp_path / "run"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "--pretrained" in err and "missing" in err and "hauwm pretrain export" in err
+    assert "Traceback" not in err
+
+
+def test_cli_requires_pretrained_for_the_hauwm_agent(tmp_path, capsys):
+    code = main(["--config", "configs/finetune/demo.yaml", "--logdir", str(tmp_path / "run"), "--no-progress"])
+    assert code == 2
+    assert "needs --pretrained" in capsys.readouterr().err

@@ -1,0 +1,58 @@
+"""finetune.replay.Replay: aligned windows inside episodes, the capacity, and reloading from disk."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from finetune.replay import Replay
+
+
+def episode(index: int, length: int) -> dict[str, np.ndarray]:
+    """Entries carry their episode index and step, so windows can be checked for alignment."""
+    steps = np.arange(length + 1)
+    obs = np.zeros((length + 1, 3, 64, 64), np.uint8)
+    obs[:, 0, 0, 0], obs[:, 0, 0, 1] = index, steps
+    action = np.stack([np.full(length + 1, index), steps], -1).astype(np.float32)
+    action[0] = 0
+    reward = (index * 1000 + steps).astype(np.float32)
+    reward[0] = 0
+    return {"obs": obs, "action": action, "reward": reward}
+
+
+def test_windows_stay_inside_one_episode_and_keep_alignment(tmp_path):
+    replay = Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0))
+    for i, length in enumerate([5, 30, 12]):
+        replay.add(episode(i + 1, length))
+    assert replay.num_steps == 47 and replay.ready(10) and not replay.ready(40)
+    batch = replay.sample(batch_size=64, length=10)
+    assert batch["obs"].shape == (64, 10, 3, 64, 64) and batch["obs"].dtype == np.uint8
+    assert batch["action"].shape == (64, 10, 2) and batch["reward"].shape == (64, 10)
+    ep, step = batch["obs"][:, :, 0, 0, 0].astype(int), batch["obs"][:, :, 0, 0, 1].astype(int)
+    assert (ep == ep[:, :1]).all()  # one episode per window
+    assert (np.diff(step, axis=1) == 1).all()  # consecutive entries
+    assert set(np.unique(ep)) == {2, 3}  # the 5-step episode cannot hold a window of 10
+    later = step > 0
+    assert (batch["reward"][later] == (ep * 1000 + step)[later]).all()
+    assert (batch["action"][..., 1][later] == step[later]).all()
+
+
+def test_capacity_drops_the_oldest_episodes_and_disk_reload_keeps_the_newest(tmp_path):
+    replay = Replay(tmp_path, capacity=50, rng=np.random.default_rng(0))
+    for i in range(5):
+        replay.add(episode(i + 1, 20))
+    assert replay.num_steps == 40 and len(replay.episodes) == 2
+    assert len(list(tmp_path.glob("*.npz"))) == 5  # files stay on disk
+
+    reloaded = Replay(tmp_path, capacity=50, rng=np.random.default_rng(0))
+    assert reloaded.load() == 2
+    assert [int(ep["obs"][0, 0, 0, 0]) for ep in reloaded.episodes] == [4, 5]
+    reloaded.add(episode(6, 20))
+    assert (tmp_path / "000005-20.npz").exists()  # numbering continues after the reload
+
+
+def test_sampling_without_a_long_enough_episode_says_what_to_change(tmp_path):
+    replay = Replay(None, capacity=100, rng=np.random.default_rng(0))
+    replay.add(episode(1, 5))
+    with pytest.raises(ValueError, match="seq_len"):
+        replay.sample(4, 10)
