@@ -84,14 +84,18 @@ def _write_json_atomic(path: Path, data, lines: list[dict] | None = None) -> Non
 
 def settings_of(config: BuildConfig) -> dict:
     """Everything the shards' bytes depend on; a resume must match it exactly."""
-    names = ["labels", *config.splits]
     return {
         "format_version": FORMAT_VERSION, "splits": list(config.splits), "size": config.size,
         "resize": config.resize, "encoding": config.encoding, "quality": config.quality,
         "clips_per_shard": config.clips_per_shard, "min_frames": config.min_frames, "max_clips": config.max_clips,
-        "annotations_sha256": {name: _sha256(annotation_path(config.annotations, name)) for name in names
-                               if name != "test" or annotation_path(config.annotations, name).is_file()},
+        "annotations_sha256": {name: _sha256(annotation_path(config.annotations, name))
+                               for name in annotation_files(config.splits)},
     }
+
+
+def annotation_files(splits: list[str]) -> list[str]:
+    """The label files a build of `splits` reads (the test split needs no labels)."""
+    return (["labels"] if set(splits) - {"test"} else []) + list(splits)
 
 
 def plan_shards(config: BuildConfig) -> list[ShardPlan]:
@@ -202,6 +206,10 @@ def assemble_manifest(config: BuildConfig, settings: dict, plans: list[ShardPlan
 
 
 def validate(config: BuildConfig) -> None:
+    for name in annotation_files(config.splits):
+        if not annotation_path(config.annotations, name).is_file():
+            raise BuildError(f"{annotation_path(config.annotations, name)}: file not found; --annotations must be "
+                             "the directory holding the something-something-v2-*.json files")
     if not config.videos.is_dir():
         raise BuildError(f"--videos {config.videos}: not a directory (it should hold <id>.webm files)")
     if not 0 <= config.part < config.num_parts:

@@ -61,6 +61,8 @@ class ShardDataModule(lightning.LightningDataModule):
         if self.trainer is not None and not any(isinstance(c, SetEpoch) for c in self.trainer.callbacks):
             warnings.warn("ShardDataModule: add data_pipeline.SetEpoch() to the Trainer's callbacks, or every "
                           "epoch reads the shards in the same order", stacklevel=2)
+        # Lightning warns that a sized IterableDataset may be inaccurate with workers; ours splits per worker.
+        warnings.filterwarnings("ignore", message=".*`IterableDataset` has `__len__` defined")
         return make_dataloader(self.train_set)
 
     def val_dataloader(self):

@@ -2,7 +2,8 @@
 
 Per epoch, the shard list is shuffled globally with `seed + epoch`, then split by node (rank) and by
 DataLoader worker (`webdataset.split_by_node`, `split_by_worker`). Each worker cycles over its shards
-(tar → samples → shuffle buffer → L sampled frames decoded → batches) and stops after exactly
+pass after pass (tar → samples → shuffle buffer within the pass → L sampled frames decoded → batches)
+and stops after exactly
 `batches_per_worker` batches, computed up front from the manifest's per-shard frame counts:
 
     batches_per_worker = ⌊ clips with at least L frames / (world_size · workers · batch_size) ⌋
@@ -101,13 +102,6 @@ def to_sequence(sample: dict, seq_len: int, k_max: int, rng: np.random.Generator
             "num_frames": metadata["num_frames"], "label": metadata["class_index"], "id": metadata["id"]}
 
 
-def _cycle(shards: Iterator[dict]) -> Iterator[dict]:
-    """This worker's shards, over and over (the batch cap ends the epoch)."""
-    shards = list(shards)
-    while True:
-        yield from shards
-
-
 class SequenceDataset(IterableDataset):
     """Batches of variable-gap sequences from one split's shards; `len()` is the batches per rank."""
 
@@ -143,19 +137,33 @@ class SequenceDataset(IterableDataset):
     def __len__(self) -> int:
         return self.batches_per_worker * self.workers
 
-    def __iter__(self) -> Iterator[dict]:
-        rank, _, worker, _ = pytorch_worker_info()
+    def stream_urls(self) -> list[str]:
+        """The shards this rank and worker read this epoch: the list shuffled with seed + epoch (the same
+        order everywhere), then split by node and by worker (webdataset's `split_by_node`, `split_by_worker`)."""
         urls = list(self.urls)
         if self.shuffle:
-            random.Random(self.seed + self.epoch).shuffle(urls)  # the same order on every rank and worker
+            random.Random(self.seed + self.epoch).shuffle(urls)
+        return list(wds.split_by_worker(wds.split_by_node(urls)))
+
+    def _passes(self, urls: list[str], rng: np.random.Generator) -> Iterator[dict]:
+        """Tar samples from this stream's shards, pass after pass (the batch cap ends the epoch); each
+        pass in a new shard order, shuffled through the buffer within the pass, so no clip repeats
+        before every clip of the stream has come once."""
+        while True:
+            stages = [wds.SimpleShardList([urls[i] for i in rng.permutation(len(urls))] if self.shuffle else urls),
+                      wds.tarfile_to_samples()]
+            if self.shuffle and self.shuffle_buffer > 1:
+                stages.append(wds.shuffle(self.shuffle_buffer, initial=self.shuffle_buffer,
+                                          rng=random.Random(int(rng.integers(2**63)))))
+            yield from wds.DataPipeline(*stages)
+
+    def __iter__(self) -> Iterator[dict]:
+        rank, _, worker, _ = pytorch_worker_info()
+        urls = self.stream_urls()
         rng = np.random.default_rng([self.seed, self.epoch, rank, worker])
-        stages = [wds.SimpleShardList(urls), wds.split_by_node, wds.split_by_worker, _cycle, wds.tarfile_to_samples()]
-        if self.shuffle and self.shuffle_buffer > 1:
-            stages.append(wds.shuffle(self.shuffle_buffer, initial=self.shuffle_buffer,
-                                      rng=random.Random(int(rng.integers(2**63)))))
-        stages += [wds.map(lambda sample: to_sequence(sample, self.seq_len, self.k_max, rng)),
-                   wds.batched(self.batch_size, collation_fn=collate, partial=False)]
-        return islice(iter(wds.DataPipeline(*stages)), self.batches_per_worker)
+        sequences = (to_sequence(sample, self.seq_len, self.k_max, rng) for sample in self._passes(urls, rng))
+        batches = wds.batched(self.batch_size, collation_fn=collate, partial=False)(filter(None, sequences))
+        return islice(batches, self.batches_per_worker)
 
 
 def _init_worker(_: int) -> None:

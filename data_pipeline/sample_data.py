@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -134,7 +135,15 @@ def fill_template(template: str, shapes: list[Shape]) -> tuple[str, list[str]]:
 def write_webm(path: Path, frames: np.ndarray) -> None:
     """Real VP9 WebM via OpenCV; `frames` is RGB `uint8 [T, H, W, 3]`."""
     height, width = frames.shape[1:3]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"VP90"), FPS, (width, height))
+    saved = os.dup(2)  # OpenCV prints a harmless "tag 'VP90' is not supported ... fallback" line to stderr
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
+    try:
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"VP90"), FPS, (width, height))
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
     if not writer.isOpened():
         raise RuntimeError(f"{path}: OpenCV cannot write VP9 WebM here (its FFmpeg build lacks libvpx)")
     for frame in frames:
@@ -151,14 +160,15 @@ def _make_clip(job: tuple[int, str, Path, str]) -> dict:
     template = choose_template(shapes, centres)
     caption, placeholders = fill_template(template, shapes)
     path = videos / f"{clip_id}.webm"
-    if kind != "missing":
+    if kind in ("ok", "too-short", "truncated", "corrupt"):
         write_webm(path, frames)
-    data = path.read_bytes() if path.exists() else b""
     if kind == "empty":
         path.write_bytes(b"")
     elif kind == "truncated":
+        data = path.read_bytes()
         path.write_bytes(data[: len(data) // 2])
     elif kind == "corrupt":  # garbage in the middle of the stream: decoders drop or mangle frames
+        data = path.read_bytes()
         start = len(data) // 3
         garbage = rng.integers(0, 256, min(len(data) // 3, 4096), dtype=np.uint8).tobytes()
         path.write_bytes(data[:start] + garbage + data[start + len(garbage):])

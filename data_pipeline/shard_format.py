@@ -60,8 +60,8 @@ def decode_frames(data: bytes, extension: str, indices=None) -> np.ndarray:
     starts = ends - lengths
     indices = range(count) if indices is None else indices
     images = [cv2.imdecode(np.frombuffer(data, np.uint8, count=int(lengths[i]), offset=int(starts[i])),
-                           cv2.IMREAD_COLOR) for i in indices]
-    return np.stack(images)[..., ::-1]  # BGR → RGB
+                           cv2.IMREAD_COLOR_RGB) for i in indices]
+    return np.stack(images)
 
 
 def add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:

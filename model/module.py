@@ -66,6 +66,7 @@ class PretrainModule(L.LightningModule):
         hidden: int = 200,
         ensemble: int = 7,
         min_std: float = 0.1,
+        max_std: float = 1.0,
         temporal_mode: str = "relative",
         temporal_dim: int = 32,
         reference_length: float = 100.0,

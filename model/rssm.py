@@ -4,8 +4,12 @@
     prior head i     : N(μ_i(deter_t), σ_i(deter_t)²)       i = 1..M   (eq. 1; all M heads in one batched matmul)
     posterior        : N(μ_q(deter_t, e_t), σ_q(deter_t, e_t)²),  stoch_t ~ posterior   (e_t: image embedding)
 
-Distribution parameters are always float32 (softplus std with a floor of min_std), also under autocast,
-because 16-bit RSSMs are known to overflow in the std/KL path.
+Distribution parameters are always float32, also under autocast, because 16-bit RSSMs are known to
+overflow in the std/KL path. The std is bounded, min_std + (max_std − min_std) · sigmoid(x + 2) (DreamerV3's
+Gaussian latents): with an unbounded std (softplus + floor) a head pays only a logarithmic KL for straying
+from the posterior if it widens its std, so the quadratic HCU reward wins and the heads run apart — measured
+on tiny.yaml: prior std 0.8 → 6.8 and disagreement 0.01 → 183 within 144 steps. Bounded, the KL cost of
+disagreement stays quadratic and the HCU term only weakens the pull between heads, the more so the larger k.
 """
 
 from __future__ import annotations
@@ -52,9 +56,9 @@ class EnsembleLinear(nn.Module):
         return torch.baddbmm(self.bias, x, self.weight)
 
 
-def _mean_std(raw: torch.Tensor, min_std: float) -> tuple[torch.Tensor, torch.Tensor]:
+def _mean_std(raw: torch.Tensor, min_std: float, max_std: float) -> tuple[torch.Tensor, torch.Tensor]:
     mean, std = raw.float().chunk(2, dim=-1)  # float32 even under autocast
-    return mean, F.softplus(std) + min_std
+    return mean, min_std + (max_std - min_std) * torch.sigmoid(std + 2.0)
 
 
 class EnsembleRSSM(nn.Module):
@@ -67,11 +71,15 @@ class EnsembleRSSM(nn.Module):
         hidden: int = 200,
         ensemble: int = 7,
         min_std: float = 0.1,
+        max_std: float = 1.0,
     ):
         super().__init__()
         if ensemble < 1:
             raise ValueError(f"ensemble (M) must be ≥ 1, got {ensemble}")
-        self.deter_dim, self.stoch_dim, self.ensemble, self.min_std = deter, stoch, ensemble, min_std
+        if not 0 < min_std < max_std:
+            raise ValueError(f"need 0 < min_std < max_std, got {min_std}, {max_std}")
+        self.deter_dim, self.stoch_dim, self.ensemble = deter, stoch, ensemble
+        self.min_std, self.max_std = min_std, max_std
         self.img_in = nn.Sequential(nn.Linear(stoch + cond_dim, hidden), nn.ELU())
         self.cell = nn.GRUCell(hidden, deter)
         self.prior_hidden = EnsembleLinear(ensemble, deter, hidden)
@@ -94,7 +102,7 @@ class EnsembleRSSM(nn.Module):
     def heads(self, deter: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """All M prior heads at once: deter [B, D] → mean, std [M, B, S] float32."""
         hidden = F.elu(self.prior_hidden(deter))  # [M, B, H]
-        return _mean_std(self.prior_out(hidden), self.min_std)
+        return _mean_std(self.prior_out(hidden), self.min_std, self.max_std)
 
     def img_step(self, prev: RSSMState, cond: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One transition without an observation: → deter [B, D], prior mean and std [M, B, S]."""
@@ -111,7 +119,8 @@ class EnsembleRSSM(nn.Module):
     ) -> tuple[RSSMState, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Transition plus posterior: → (post state, post mean, post std [B, S], prior mean, prior std [M, B, S])."""
         deter, prior_mean, prior_std = self.img_step(prev, cond)
-        post_mean, post_std = _mean_std(self.posterior(torch.cat([deter, embed.to(deter.dtype)], dim=-1)), self.min_std)
+        raw = self.posterior(torch.cat([deter, embed.to(deter.dtype)], dim=-1))
+        post_mean, post_std = _mean_std(raw, self.min_std, self.max_std)
         noise = torch.randn(post_mean.shape, generator=generator, device=post_mean.device, dtype=post_mean.dtype)
         stoch = post_mean + post_std * noise
         return RSSMState(deter, stoch), post_mean, post_std, prior_mean, prior_std

@@ -26,6 +26,7 @@ class WorldModel(nn.Module):
         hidden: int = 200,
         ensemble: int = 7,
         min_std: float = 0.1,
+        max_std: float = 1.0,
         temporal_mode: str = "relative",
         temporal_dim: int = 32,
         reference_length: float = 100.0,
@@ -33,11 +34,11 @@ class WorldModel(nn.Module):
         super().__init__()
         self.config = dict(
             cnn_width=cnn_width, embed_dim=embed_dim, deter=deter, stoch=stoch, hidden=hidden, ensemble=ensemble,
-            min_std=min_std, temporal_mode=temporal_mode, temporal_dim=temporal_dim, reference_length=reference_length,
+            min_std=min_std, max_std=max_std, temporal_mode=temporal_mode, temporal_dim=temporal_dim, reference_length=reference_length,
         )
         self.encoder = Encoder(cnn_width, embed_dim)
         self.temporal = TemporalEmbedding(temporal_dim, temporal_mode, reference_length)
-        self.rssm = EnsembleRSSM(embed_dim, temporal_dim, deter, stoch, hidden, ensemble, min_std)
+        self.rssm = EnsembleRSSM(embed_dim, temporal_dim, deter, stoch, hidden, ensemble, min_std, max_std)
         self.decoder = Decoder(self.rssm.feature_dim, cnn_width)
 
     def embed(self, frames: torch.Tensor) -> torch.Tensor:

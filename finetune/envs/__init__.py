@@ -5,18 +5,26 @@
     obs, info = env.reset()
     obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
 
-Headless rendering is set up here, before anything imports mujoco: OSMesa by default (Debian package
-`libosmesa6`); a user's own `MUJOCO_GL` wins (`egl` renders on the GPU where there is one). The render
-thread offloading of dm_control is switched off: each env renders on the thread that uses it, which is
-faster and avoids dm_control's failing clean-up at interpreter exit.
+Importing this package sets up headless rendering before anything imports mujoco:
+
+- `MUJOCO_GL=osmesa` by default (Debian package `libosmesa6`); a user's own `MUJOCO_GL` wins
+  (`egl` renders on the GPU where there is one, or with Mesa's software EGL where there is not);
+- dm_control's render-thread offloading is off: each env renders on the thread that uses it, which is
+  faster and avoids dm_control's failing clean-up at interpreter exit;
+- triton is imported first where it is installed: it and Mesa's software rasteriser (llvmpipe) each
+  load LLVM, and loading triton (e.g. through `torch._dynamo`) after an OSMesa or EGL context exists
+  crashes the process with a segmentation fault.
 """
 
+import importlib.util
 import os
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 if os.environ["MUJOCO_GL"] in ("osmesa", "egl"):  # PyOpenGL (used by mujoco's Python renderer) must agree
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ.setdefault("DISABLE_RENDER_THREAD_OFFLOADING", "1")
+if importlib.util.find_spec("triton") is not None:
+    import triton  # noqa: F401, E402
 
 from finetune.envs.references import normalised_return  # noqa: E402
 from finetune.envs.registry import PAPER_TASKS, make_env  # noqa: E402

@@ -32,6 +32,7 @@ class PixelEnv(gymnasium.Env):
     def __init__(
         self,
         name: str,
+        seed: int,
         action_low: np.ndarray,
         action_high: np.ndarray,
         image_size: int,
@@ -49,7 +50,7 @@ class PixelEnv(gymnasium.Env):
         self._action_low = np.asarray(action_low, dtype=np.float64)  # [A]
         self._action_high = np.asarray(action_high, dtype=np.float64)  # [A]
         self.observation_space = gymnasium.spaces.Box(0, 255, (3, image_size, image_size), np.uint8)
-        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, self._action_low.shape, np.float32)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, self._action_low.shape, np.float32, seed=seed)
         self._agent_steps = 0
         self._episode_over = True  # step() needs a reset() first
 

@@ -16,6 +16,11 @@ from dm_control.mujoco import engine
 from finetune.envs.base import PixelEnv
 from finetune.envs.rendering import FAST_RENDER_FLAGS_OFF, disable_multisampling
 
+# dm-control 1.0.28's quadruped calls np.in1d, which numpy 2.4 removed; np.isin is its documented
+# replacement with the same result for these 1-D arrays.
+if not hasattr(np, "in1d"):
+    np.in1d = np.isin
+
 EPISODE_SIM_STEPS = 1000
 DEFAULT_ACTION_REPEAT = 2
 CAMERA_IDS = {"quadruped": 2}  # every other domain uses camera 0
@@ -42,7 +47,7 @@ class DMCEnv(PixelEnv):
         domain, task = domain_task
         self._env = suite.load(domain, task, task_kwargs={"random": seed, "time_limit": float("inf")})
         spec = self._env.action_spec()
-        super().__init__(name, spec.minimum, spec.maximum, image_size, action_repeat, time_limit)
+        super().__init__(name, seed, spec.minimum, spec.maximum, image_size, action_repeat, time_limit)
         physics = self._env.physics
         if fast_render:
             disable_multisampling(physics.model)

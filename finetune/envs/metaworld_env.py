@@ -24,7 +24,9 @@ CAMERA = "corner2"
 
 def tasks() -> dict[str, str]:
     """Every Meta-World v3 task as `metaworld_<task>` -> its Meta-World id ('dial-turn-v3')."""
-    return {f"metaworld_{env_id.removesuffix('-v3').replace('-', '_')}": env_id for env_id in metaworld.ALL_V3_ENVIRONMENTS}
+    return {
+        f"metaworld_{env_id.removesuffix('-v3').replace('-', '_')}": env_id for env_id in metaworld.ALL_V3_ENVIRONMENTS
+    }
 
 
 class MetaWorldEnv(PixelEnv):
@@ -56,7 +58,8 @@ class MetaWorldEnv(PixelEnv):
             disable_env_checker=True,  # it warns about Meta-World's state observations, which we ignore
         )
         sim = self._env.unwrapped
-        super().__init__(name, sim.action_space.low, sim.action_space.high, image_size, action_repeat, time_limit)
+        low, high = sim.action_space.low, sim.action_space.high
+        super().__init__(name, seed, low, high, image_size, action_repeat, time_limit)
         if fast_render:
             disable_multisampling(sim.model)
         sim.mujoco_renderer.render("rgb_array")  # creates the offscreen viewer and its OpenGL context

@@ -20,7 +20,10 @@ FAST_RENDER_FLAGS_OFF: dict[str, bool] = {"shadow": False, "reflection": False}
 
 
 def disable_multisampling(model: mujoco.MjModel) -> None:
-    """Render to a single-sample offscreen buffer; call before the model's first render."""
+    """Render to a single-sample offscreen buffer; call before the model's first render.
+
+    `model` is a `mujoco.MjModel` or dm_control's wrapper of one (same `vis` fields).
+    """
     model.vis.quality.offsamples = 0
 
 

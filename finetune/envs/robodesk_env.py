@@ -62,8 +62,8 @@ class RoboDeskEnv(PixelEnv):
         self._env._get_obs = lambda: None  # no rendering inside RoboDesk's step (see module docstring)
         self._task = task
         self._rng = np.random.RandomState(seed)
-        space = self._env.action_space
-        super().__init__(name, space.low, space.high, image_size, action_repeat, time_limit)
+        bound = np.ones(self._env.action_dim)  # RoboDesk's actions are already in [-1, 1]
+        super().__init__(name, seed, -bound, bound, image_size, action_repeat, time_limit)
         physics = self._env.physics
         if fast_render:
             disable_multisampling(physics.model)

@@ -181,7 +181,8 @@ def test_parts_build_the_same_shards_and_the_last_writes_the_manifest(sample_ssv
                            max_error_rate=0.0)
     manifest, status = build(config(1), log=quiet)
     assert manifest is None and status == 0 and not (tmp_path / "manifest.json").exists()
-    assert sorted(p.name for p in tmp_path.glob("*.tar")) == ["train-000001.tar", "train-000003.tar"]
+    assert sorted(p.name for p in tmp_path.glob("*.tar")) == ["train-000001.tar", "train-000003.tar",
+                                                              "validation-000000.tar"]  # every 2nd of 6
     manifest, status = build(config(0), log=quiet)
     assert manifest is not None
     assert directory_bytes(tmp_path) == directory_bytes(built_shards)

@@ -1,0 +1,109 @@
+"""Learning check on a cheap DMC pixel task: does the evaluation return rise well above a random policy's?
+
+    python bench/bench_learning.py                                   # scratch agent, cartpole swing-up, 25 min
+    python bench/bench_learning.py --agent hauwm --pretrained DIR --minutes 60
+    python bench/bench_learning.py --minutes 2 --logdir /tmp/quick   # a smoke run
+
+Runs `finetune.train.train` in chunks of `--chunk` env steps (each chunk resumes the last from its
+checkpoint) until the wall-clock budget is spent, with small networks that fit a CPU. Then it plays
+random-policy episodes for the baseline, prints a table and draws eval return against env steps
+(`learning_curve.png` in the log directory). Settings and machine are printed with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+import torch._dynamo  # noqa: E402,F401  before MuJoCo's OSMesa context (see finetune/train.py)
+
+from finetune.config import FinetuneConfig  # noqa: E402
+from finetune.train import train  # noqa: E402
+
+# small enough for a shared CPU: ~1 update/s on one loaded core
+CPU_SETTINGS = dict(
+    action_repeat=8, prefill=2000, train_every=8, batch_size=16, seq_len=16, units=200, hidden=100, deter=100,
+    stoch=20, encoder_width=8, eval_every=2000, eval_episodes=3, log_every=500, checkpoint_every=2000,
+    fast_render=True, device="cpu", threads=1,
+)
+
+
+def random_returns(task: str, action_repeat: int, episodes: int, seed: int = 123) -> list[float]:
+    from finetune.envs import make_env
+
+    env = make_env(task, seed=seed, action_repeat=action_repeat, fast_render=True)
+    env.action_space.seed(seed)
+    returns = []
+    for _ in range(episodes):
+        env.reset()
+        total, done = 0.0, False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+            total, done = total + float(reward), terminated or truncated
+        returns.append(total)
+    return returns
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="dmc_cartpole_swingup")
+    parser.add_argument("--agent", default="scratch", choices=["scratch", "hauwm"])
+    parser.add_argument("--pretrained", help="export directory (agent hauwm)")
+    parser.add_argument("--minutes", type=float, default=25.0, help="wall-clock budget for training")
+    parser.add_argument("--chunk", type=int, default=2000, help="env steps per resumed chunk")
+    parser.add_argument("--logdir", default="runs/bench_learning")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    cfg = FinetuneConfig(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir, steps=0, **CPU_SETTINGS)
+    if args.agent == "hauwm":  # the new stream takes the export's sizes
+        cfg = dataclasses.replace(cfg, deter=None, stoch=None)
+    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs (shared), torch {torch.__version__}, 1 thread")
+    print(f"task {args.task}, agent {args.agent}, budget {args.minutes} min, settings {CPU_SETTINGS}", flush=True)
+    start = time.perf_counter()
+    while time.perf_counter() - start < args.minutes * 60:
+        cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)
+        train(cfg, args.pretrained, progress=False)
+        print(f"{(time.perf_counter() - start) / 60:.1f} min: {cfg.steps} env steps", flush=True)
+
+    baseline = random_returns(args.task, cfg.action_repeat, episodes=10)
+    with open(Path(args.logdir) / "eval.csv") as f:
+        evals = [(int(r["env_step"]), float(r["return"])) for r in csv.DictReader(f)]
+    print(f"\nrandom policy: {np.mean(baseline):.1f} ± {np.std(baseline):.1f} (10 episodes)")
+    print(f"{'env steps':>10} {'eval return':>12}")
+    for step, ret in evals:
+        print(f"{step:>10} {ret:>12.1f}")
+    best = max(ret for _, ret in evals)
+    print(f"best eval return {best:.1f} = {best / max(np.mean(baseline), 1e-9):.1f}× the random policy's; "
+          f"{(time.perf_counter() - start) / 60:.1f} min in all")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(*zip(*evals), marker="o", label=f"{args.agent} agent (eval, {cfg.eval_episodes} episodes)")
+    ax.axhline(np.mean(baseline), color="gray", linestyle="--", label="random policy")
+    ax.set_xlabel("env steps (frames)")
+    ax.set_ylabel("episode return")
+    ax.set_title(f"{args.task}, CPU, {args.minutes:g} min")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(Path(args.logdir) / "learning_curve.png", dpi=120)
+    print(f"curve: {Path(args.logdir) / 'learning_curve.png'}")
+
+
+if __name__ == "__main__":
+    main()

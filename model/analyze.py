@@ -1,0 +1,153 @@
+"""`hauwm pretrain analyze`: what pre-training learned about uncertainty (the paper's RQ3, section 5.4, fig. 5).
+
+For each exported model, on the same held-out batches:
+- disagreement_vs_k.png: ensemble disagreement and open-loop prediction error against the gap k
+  (model/evaluation.py), one line per model — e.g. with and without HCU — with the Spearman ρ(k, disagreement);
+- rollouts_<model>.png: an imagined rollout of one held-out clip, decoded from several heads side by side
+  (each head following its own means) under the ensemble mean and the ground truth, with each step's gap k
+  and the ensemble disagreement (the paper's fig. 5);
+- figures.json: every number plotted.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from data_pipeline.loader import SequenceDataset, shard_set  # noqa: E402
+from model.evaluation import horizon_metrics, horizon_sums  # noqa: E402
+from model.export import FrozenWorldModel, load_frozen  # noqa: E402
+from model.losses import disagreement  # noqa: E402
+
+
+def model_label(model: FrozenWorldModel, name: str) -> str:
+    provenance = model.config.get("provenance", {})
+    if not provenance:
+        return name
+    hcu = f"HCU λ₀={provenance['lambda_init']:g}" if provenance.get("hcu") else "no HCU"
+    return f"{name} ({hcu}, M={model.config['ensemble']}, step {provenance.get('global_step', '?')})"
+
+
+@torch.no_grad()
+def horizon_figure_data(model: FrozenWorldModel, batches: list[dict], k_max: int, seed: int) -> dict:
+    sums = sum(horizon_sums(model, batch, k_max, torch.Generator().manual_seed(seed + i))[0] for i, batch in enumerate(batches))
+    return horizon_metrics(sums)
+
+
+@torch.no_grad()
+def rollout(model: FrozenWorldModel, batch: dict, heads: int, context: int, seed: int) -> dict:
+    """Observe `context` frames of the first clip, then imagine the rest open-loop with the clip's own gaps."""
+    frames, gaps, num_frames = batch["frames"][:1], batch["gaps"][:1], batch["num_frames"][:1]
+    obs = model.observe(frames[:, :context], gaps[:, :context], num_frames, torch.Generator().manual_seed(seed))
+    conds = model.conditions(gaps[:, context:], num_frames)  # [1, H, C]
+    start = obs.state(context - 1)
+    mean_states, mean_heads = model.rssm.imagine(start, conds)  # heads' means along the ensemble-mean path
+    rows = {"ensemble mean": model.decode(mean_states)[0]}
+    for head in range(min(heads, model.rssm.ensemble)):
+        rows[f"head {head + 1}"] = model.decode(model.rssm.imagine(start, conds, head=head)[0])[0]
+    return {
+        "truth": frames[0, context:],
+        "rows": rows,
+        "gaps": gaps[0, context:].tolist(),
+        "indices": batch["indices"][0, context:].tolist(),
+        "context_indices": batch["indices"][0, :context].tolist(),
+        "disagreement": disagreement(mean_heads)[0].tolist(),  # [H]
+        "id": batch["id"][0],
+    }
+
+
+def json_safe(value):
+    """NaN (a gap never seen) → null, recursively, so figures.json is strict JSON."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, dict):
+        return {key: json_safe(v) for key, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def to_image(x: torch.Tensor) -> np.ndarray:
+    """uint8 [3, H, W] or float [3, H, W] in preprocess space → float [H, W, 3] in [0, 1]."""
+    x = x.float() / 255.0 if x.dtype == torch.uint8 else x.float() + 0.5
+    return x.clamp(0, 1).permute(1, 2, 0).cpu().numpy()
+
+
+def plot_horizon(results: list[dict], path: Path) -> None:
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    for result in results:
+        metrics = result["horizon"]
+        left.plot(metrics["k"], metrics["disagreement"], marker="o",
+                  label=f"{result['label']}  ρ={metrics['spearman_k_disagreement']:.2f}")
+        right.plot(metrics["k"], metrics["recon_mse"], marker="o", label=result["label"])
+    left.set(xlabel="gap k (frames)", ylabel="ensemble disagreement", title="Disagreement against the horizon k")
+    right.set(xlabel="gap k (frames)", ylabel="open-loop MSE (per pixel)", title="Prediction error from μ̄")
+    for axis in (left, right):
+        axis.grid(alpha=0.3)
+        axis.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_rollout(data: dict, title: str, path: Path) -> None:
+    rows = {"ground truth": data["truth"], **data["rows"]}
+    steps = len(data["gaps"])
+    fig, axes = plt.subplots(len(rows), steps, figsize=(1.3 * steps + 1, 1.35 * len(rows) + 0.6), squeeze=False)
+    for r, (name, images) in enumerate(rows.items()):
+        for c in range(steps):
+            axis = axes[r, c]
+            axis.imshow(to_image(images[c]))
+            axis.set_xticks([])
+            axis.set_yticks([])
+            if c == 0:
+                axis.set_ylabel(name, fontsize=7)
+            if r == 0:
+                axis.set_title(f"t{data['indices'][c]} (k={data['gaps'][c]})", fontsize=7)
+            if r == len(rows) - 1:
+                axis.set_xlabel(f"u={data['disagreement'][c]:.3g}", fontsize=7)
+    fig.suptitle(f"{title}\nclip {data['id']}, imagined after frames {data['context_indices']}; u = disagreement", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def analyze(
+    models: list[Path], shards: Path, out: Path, split: str = "validation", batches: int = 8, batch_size: int = 8,
+    seq_len: int = 12, k_max: int | None = None, heads: int = 4, seed: int = 0,
+) -> list[Path]:
+    loaded = [load_frozen(path) for path in models]
+    k_max = k_max or loaded[0].config.get("provenance", {}).get("k_max") or 5
+    dataset = SequenceDataset(shard_set(shards, split), batch_size=batch_size, seq_len=seq_len, k_max=k_max,
+                              num_workers=0, shuffle=False, seed=seed, batches_per_worker=batches)
+    held_out = list(tqdm(dataset, total=batches, desc=f"reading {split} batches", unit="batch"))
+    out.mkdir(parents=True, exist_ok=True)
+    results, written = [], []
+    for index, (path, model) in enumerate(tqdm(list(zip(models, loaded)), desc="analysing models", unit="model")):
+        name = path.name if [p.name for p in models].count(path.name) == 1 else f"{index}-{path.name}"
+        label = model_label(model, name)
+        data = rollout(model, held_out[0], heads, context=max(1, seq_len // 2), seed=seed)
+        rollout_path = out / f"rollouts_{name}.png"
+        plot_rollout(data, label, rollout_path)
+        written.append(rollout_path)
+        results.append({
+            "model": str(path), "label": label, "config": model.config,
+            "horizon": horizon_figure_data(model, held_out, k_max, seed),
+            "rollout": {key: data[key] for key in ("id", "gaps", "indices", "context_indices", "disagreement")},
+        })
+    horizon_path = out / "disagreement_vs_k.png"
+    plot_horizon(results, horizon_path)
+    json_path = out / "figures.json"
+    settings = dict(shards=str(shards), split=split, batches=batches, batch_size=batch_size, seq_len=seq_len,
+                    k_max=k_max, seed=seed)
+    json_path.write_text(json.dumps(json_safe({"settings": settings, "models": results}), indent=2) + "\n")
+    return [horizon_path, *written, json_path]

@@ -1,0 +1,57 @@
+"""`hauwm shards inspect|preview|sample-data` through the command line entry point."""
+
+import json
+import shutil
+
+import cv2
+
+from data_pipeline.cli import main
+from data_pipeline.sample_data import HEIGHT, split_sizes
+
+
+def test_inspect_reports_counts_and_verify_catches_a_damaged_shard(built_shards, tmp_path, capsys):
+    assert main(["inspect", str(built_shards), "--verify"]) == 0
+    out = capsys.readouterr().out
+    assert "train" in out and "validation" in out and "all match the manifest" in out
+    manifest = json.loads((built_shards / "manifest.json").read_text())
+    assert f"{manifest['splits']['train']['frames']:>10}" in out
+
+    damaged = tmp_path / "damaged"
+    shutil.copytree(built_shards, damaged)
+    shard = damaged / "train-000002.tar"
+    data = bytearray(shard.read_bytes())
+    data[700] ^= 0xFF  # inside the first frames member
+    shard.write_bytes(bytes(data))
+    assert main(["inspect", str(damaged), "--verify"]) == 1
+    out = capsys.readouterr().out
+    assert "FAILED train-000002.tar: SHA-256 differs from the manifest" in out
+
+
+def test_inspect_without_manifest_says_how_to_build(tmp_path, capsys):
+    assert main(["inspect", str(tmp_path)]) == 2
+    assert "manifest.json not found; build shards with `hauwm shards build" in capsys.readouterr().err
+
+
+def test_preview_writes_a_grid_of_clips(built_shards, tmp_path):
+    out = tmp_path / "preview.png"
+    assert main(["preview", str(built_shards), "--out", str(out), "--clips", "3", "--length", "5"]) == 0
+    image = cv2.imread(str(out))
+    assert image.shape[1] == 5 * 128 and image.shape[0] > 3 * 128
+    assert image.std() > 10  # not blank
+
+
+def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
+    assert main(["sample-data", "--out", str(tmp_path), "--clips", "3", "--workers", "1"]) == 0
+    annotations = tmp_path / "annotations"
+    sizes = split_sizes(3)
+    for split, size in sizes.items():
+        entries = json.loads((annotations / f"something-something-v2-{split}.json").read_text())
+        assert len(entries) == size
+        for entry in entries:
+            assert set(entry) == ({"id"} if split == "test" else {"id", "label", "template", "placeholders"})
+            capture = cv2.VideoCapture(str(tmp_path / "videos" / f"{entry['id']}.webm"))
+            assert capture.get(cv2.CAP_PROP_FRAME_HEIGHT) == HEIGHT and capture.get(cv2.CAP_PROP_FPS) == 12
+            assert int(capture.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little") in (b"VP90", b"vp09")
+    labels = json.loads((annotations / "something-something-v2-labels.json").read_text())
+    assert all(isinstance(index, str) for index in labels.values())
+    assert json.loads((tmp_path / "broken.json").read_text()) == {}

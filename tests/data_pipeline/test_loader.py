@@ -1,0 +1,173 @@
+"""The loader: batch format, gaps U{1..K_max}, frames equal the stored ones, equal batch counts on every
+rank and worker over uneven shards, the epoch reshuffle, and the LightningDataModule around it."""
+
+import json
+import tarfile
+from collections import Counter
+
+import lightning
+import numpy as np
+import pytest
+import torch
+from scipy.stats import chisquare
+
+from data_pipeline import SetEpoch, ShardDataModule
+from data_pipeline.loader import LoaderError, SequenceDataset, make_dataloader, shard_set
+from data_pipeline.shard_format import decode_frames
+
+
+def stored_clips(directory, split):
+    clips = {}
+    for shard in json.loads((directory / "manifest.json").read_text())["splits"][split]["shards"]:
+        with tarfile.open(directory / shard["name"]) as tar:
+            members = {m.name: tar.extractfile(m).read() for m in tar}
+        for name in members:
+            if name.endswith(".json"):
+                key = name[:-5]
+                clips[key] = (json.loads(members[name]), decode_frames(members[f"{key}.jpgs"], "jpgs"))
+    return clips
+
+
+def as_stream(monkeypatch, rank, world_size, worker, num_workers):
+    """What webdataset's split_by_node/split_by_worker see on that rank, in that DataLoader worker."""
+    for name, value in (("RANK", rank), ("WORLD_SIZE", world_size), ("WORKER", worker), ("NUM_WORKERS", num_workers)):
+        monkeypatch.setenv(name, str(value))
+
+
+def test_batches_have_the_contract_format_and_the_stored_frames(built_shards):
+    clips = stored_clips(built_shards, "train")
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=3, seq_len=6, k_max=5, num_workers=0)
+    batches = list(dataset)
+    assert len(batches) == len(dataset) == 18 // 3
+    for batch in batches:
+        assert batch["frames"].dtype == torch.uint8 and batch["frames"].shape == (3, 6, 3, 64, 64)
+        for key in ("gaps", "indices"):
+            assert batch[key].dtype == torch.int64 and batch[key].shape == (3, 6)
+        assert batch["num_frames"].shape == batch["label"].shape == (3,) and len(batch["id"]) == 3
+        assert (batch["gaps"][:, 0] == 0).all()
+        assert torch.equal(batch["gaps"][:, 1:], batch["indices"].diff(dim=1))
+        for b, clip_id in enumerate(batch["id"]):
+            metadata, frames = clips[clip_id]
+            indices = batch["indices"][b].numpy()
+            assert batch["num_frames"][b] == metadata["num_frames"] == len(frames)
+            assert batch["label"][b] == metadata["class_index"]
+            assert indices[0] >= 0 and indices[-1] < len(frames)
+            np.testing.assert_array_equal(batch["frames"][b].permute(0, 2, 3, 1).numpy(), frames[indices])
+
+
+def test_loader_gaps_follow_the_uniform_distribution(built_shards):
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=5, k_max=5, num_workers=0)
+    gaps = []
+    for epoch in range(25):  # clips have ≥ 24 frames ≥ 1 + 4·5: every draw fits, so exactly i.i.d.
+        dataset.set_epoch(epoch)
+        gaps += [batch["gaps"][:, 1:].reshape(-1) for batch in dataset]
+    counts = np.bincount(torch.cat(gaps).numpy(), minlength=6)[1:]
+    assert counts.sum() == 25 * 9 * 2 * 4
+    assert chisquare(counts).pvalue > 1e-3, counts
+
+
+def test_two_ranks_by_two_workers_get_equal_batch_counts_over_uneven_shards(built_shards, monkeypatch):
+    shards = shard_set(built_shards, "train")
+    assert sorted(shards.eligible(8)) == [2, 4, 4, 4, 4]  # uneven
+    counts, seen = {}, {}
+    for rank in range(2):
+        for worker in range(2):
+            as_stream(monkeypatch, rank, 2, worker, 2)
+            dataset = SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=2)
+            dataset.set_epoch(3)
+            batches = list(dataset)
+            counts[rank, worker] = len(batches)
+            seen[rank, worker] = {clip_id for batch in batches for clip_id in batch["id"]}
+            assert len(dataset) == 2 * len(batches)  # batches per rank
+    assert set(counts.values()) == {18 // (2 * 2 * 2)}, counts
+    streams = list(seen.values())
+    assert all(not (a & b) for i, a in enumerate(streams) for b in streams[i + 1:])  # each shard read by one stream
+
+
+def test_real_dataloader_workers_yield_len_batches_without_repeats_within_a_pass(built_shards, monkeypatch):
+    shards = shard_set(built_shards, "train")
+    clips_in = dict(zip(shards.urls, shards.eligible(8)))
+    dataset = SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=2)
+    dataset.set_epoch(5)
+    batches = list(make_dataloader(dataset))
+    assert len(batches) == len(dataset) == 2 * (18 // 4)
+    for worker in range(2):  # the DataLoader takes batches from its workers in turn
+        as_stream(monkeypatch, 0, 1, worker, 2)
+        stream_clips = sum(clips_in[url] for url in dataset.stream_urls())
+        ids = [clip_id for batch in batches[worker::2] for clip_id in batch["id"]]
+        first_pass = ids[:stream_clips]
+        assert len(set(first_pass)) == len(first_pass)
+
+
+def test_each_epoch_reshuffles_and_an_epoch_replays_exactly(built_shards):
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=0)
+    orders = []
+    for epoch in (0, 0, 1, 2):
+        dataset.set_epoch(epoch)
+        orders.append([batch["id"] + batch["indices"].reshape(-1).tolist() for batch in dataset])
+    assert orders[0] == orders[1]
+    assert orders[0] != orders[2] and orders[2] != orders[3]
+
+
+def test_pipe_urls_read_the_same_data(built_shards):
+    local = SequenceDataset(shard_set(built_shards, "validation"), batch_size=3, seq_len=8, shuffle=False)
+    piped = SequenceDataset(shard_set(built_shards, "validation", shard_url=f"pipe:cat {built_shards}/{{name}}"),
+                            batch_size=3, seq_len=8, shuffle=False)
+    for a, b in zip(local, piped, strict=True):
+        assert a["id"] == b["id"] and torch.equal(a["frames"], b["frames"])
+
+
+def test_too_few_shards_or_clips_give_clear_errors(built_shards, monkeypatch):
+    shards = shard_set(built_shards, "train")
+    as_stream(monkeypatch, 0, 3, 0, 1)
+    with pytest.raises(LoaderError, match="5 shards .* 3 ranks × 2 workers need at least 6"):
+        SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=2)
+    as_stream(monkeypatch, 0, 1, 0, 1)
+    with pytest.raises(LoaderError, match="lower batch_size"):
+        SequenceDataset(shards, batch_size=64, seq_len=8)
+    assert sum(shards.eligible(61)) == 0  # clips have at most 60 frames: too short for L = 61, skipped
+
+
+def test_datamodule_validates_its_inputs(built_shards, tmp_path):
+    with pytest.raises(LoaderError, match=f"{tmp_path / 'none'} does not exist.*hauwm shards build"):
+        ShardDataModule(str(tmp_path / "none")).setup("fit")
+    with pytest.raises(LoaderError, match=f"{tmp_path / 'manifest.json'} not found.*hauwm shards build"):
+        ShardDataModule(str(tmp_path)).setup("fit")
+    with pytest.raises(LoaderError, match="has no split 'test'.*--split test"):
+        ShardDataModule(str(built_shards), val_split="test", batch_size=2, seq_len=8).setup("fit")
+
+
+class RecordingModel(lightning.LightningModule):
+    """Records the clip ids of every batch; learns nothing."""
+
+    def __init__(self):
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.zeros(1))
+        self.train_ids, self.val_batches = {}, []
+
+    def training_step(self, batch, batch_index):
+        self.train_ids.setdefault(self.current_epoch, []).extend(batch["id"])
+        return (self.weight * batch["frames"].float().mean()).sum()
+
+    def validation_step(self, batch, batch_index):
+        self.val_batches.append((batch["id"], batch["gaps"].clone()))
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.0)
+
+
+def test_lightning_fit_with_set_epoch_reshuffles_and_validates_deterministically(built_shards):
+    data = ShardDataModule(str(built_shards), batch_size=2, seq_len=8, num_workers=2, val_batches=2, seed=1)
+    model = RecordingModel()
+    trainer = lightning.Trainer(max_epochs=3, accelerator="cpu", devices=1, callbacks=[SetEpoch()], logger=False,
+                                enable_checkpointing=False, enable_progress_bar=False, num_sanity_val_steps=0,
+                                enable_model_summary=False)
+    trainer.fit(model, datamodule=data)
+    assert [len(ids) for ids in model.train_ids.values()] == [2 * 2 * (18 // 4)] * 3
+    assert len({tuple(ids) for ids in model.train_ids.values()}) == 3  # a new order every epoch
+    assert len(model.val_batches) == 3 * 2
+    first, *rest = [model.val_batches[i:i + 2] for i in range(0, 6, 2)]
+    for later in rest:  # every evaluation sees the same clips with the same gaps
+        assert [ids for ids, _ in later] == [ids for ids, _ in first]
+        assert all(torch.equal(a, b) for (_, a), (_, b) in zip(later, first))
+    assert Counter(len(ids) for ids, _ in first) == Counter({2: 2})

@@ -1,0 +1,236 @@
+"""The fine-tuning environments: one gymnasium interface over DMC, Meta-World v3 and RoboDesk.
+
+Real simulators and real (OSMesa/EGL) rendering throughout; `fast_render=True` and short time limits
+keep the module to well under a minute of CPU.
+"""
+
+from __future__ import annotations
+
+import gc
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from finetune.envs import PAPER_TASKS, make_env, normalised_return
+from finetune.envs.base import PixelEnv
+
+# one paper task per suite, with its default action repeat and agent steps per episode
+SUITE_TASKS = {
+    "dmc_cheetah_run": (2, 500),
+    "metaworld_dial_turn": (1, 500),
+    "robodesk_push_green": (2, 250),
+}
+
+
+@pytest.fixture
+def envs_to_close():
+    made: list[PixelEnv] = []
+    yield made
+    for env in made:
+        env.close()
+
+
+@pytest.mark.parametrize("name", SUITE_TASKS)
+def test_spaces_reset_step_and_time_limit(name, envs_to_close):
+    env = make_env(name, seed=0, fast_render=True, time_limit=3)
+    envs_to_close.append(env)
+    assert env.observation_space.shape == (3, 64, 64) and env.observation_space.dtype == np.uint8
+    assert env.action_space.dtype == np.float32
+    assert np.all(env.action_space.low == -1.0) and np.all(env.action_space.high == 1.0)
+    assert env.action_repeat == SUITE_TASKS[name][0]
+
+    obs, info = env.reset()
+    assert obs.shape == (3, 64, 64) and obs.dtype == np.uint8
+    assert env.observation_space.contains(obs)
+    assert obs.std() > 5, "the frame is blank: rendering is broken"
+
+    for step in range(1, 4):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert obs.shape == (3, 64, 64) and obs.dtype == np.uint8
+        assert isinstance(reward, float) and np.isfinite(reward)
+        assert terminated is False
+        assert truncated is (step == 3), "the time limit must truncate exactly at step 3"
+        if name.startswith("dmc"):
+            assert "success" not in info
+        else:
+            assert info["success"] in (0.0, 1.0)
+
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(env.action_space.sample())
+    obs, _ = env.reset()  # a new episode after truncation
+    assert env.step(env.action_space.sample())[3] is False
+
+
+@pytest.mark.parametrize("name", SUITE_TASKS)
+def test_default_episode_length(name, envs_to_close):
+    env = make_env(name, seed=0, fast_render=True)
+    envs_to_close.append(env)
+    assert env.time_limit == SUITE_TASKS[name][1]
+
+
+@pytest.mark.parametrize("name", SUITE_TASKS)
+def test_seeding_gives_the_same_first_frame(name, envs_to_close):
+    a, b, c = (make_env(name, seed=s, fast_render=True) for s in (7, 7, 8))
+    envs_to_close.extend([a, b, c])
+    first = a.reset()[0]
+    assert np.array_equal(first, b.reset()[0]), "same seed, different first frame"
+    assert not np.array_equal(first, c.reset()[0]), "different seeds gave the same initial state"
+    a.reset()  # a later episode starts elsewhere ...
+    assert np.array_equal(first, a.reset(seed=7)[0])  # ... and reset(seed=...) re-seeds
+
+
+def test_full_metaworld_episode_is_truncated_at_500_steps(envs_to_close):
+    env = make_env("metaworld_drawer_close", seed=1, fast_render=True)
+    envs_to_close.append(env)
+    env.reset()
+    steps, episode_return = 0, 0.0
+    terminated = truncated = False
+    while not (terminated or truncated):
+        _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+        steps, episode_return = steps + 1, episode_return + reward
+    assert (steps, terminated, truncated) == (500, False, True)
+    assert 0 < episode_return < 5000  # Meta-World rewards are 0-10 per step
+
+
+def test_metaworld_time_limit_beyond_its_path_length_fails_clearly():
+    with pytest.raises(ValueError, match="500-step episodes"):
+        make_env("metaworld_dial_turn", seed=0, time_limit=501)
+
+
+def test_envs_in_one_process_keep_their_own_rendering(envs_to_close):
+    """gymnasium's Meta-World viewer renders into whichever OpenGL context is current, and frees its
+    objects in it; two live envs (train and eval) must still each render their own scene."""
+    default = make_env("metaworld_dial_turn", seed=0)
+    fast = make_env("metaworld_dial_turn", seed=0, fast_render=True)
+    dmc = make_env("dmc_cheetah_run", seed=0, fast_render=True)
+    envs_to_close.extend([default, dmc])
+    frame_default, frame_fast = default.reset()[0], fast.reset()[0]
+    dmc.reset()
+    assert np.array_equal(frame_default, default.render().transpose(2, 0, 1))
+    assert frame_fast.std() > 5
+    del fast
+    gc.collect()
+    assert np.array_equal(frame_default, default.render().transpose(2, 0, 1))
+
+
+def test_torch_compiler_can_load_after_an_env_renders():
+    """triton and Mesa's llvmpipe both load LLVM: triton loaded after a context segfaulted (rc -11)."""
+    script = (
+        "from finetune.envs import make_env\n"
+        "env = make_env('dmc_cartpole_swingup', seed=0, fast_render=True)\n"
+        "env.reset()\n"
+        "import torch._dynamo\n"
+        "env.step(env.action_space.sample())\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_fast_render_keeps_dmc_frames_nearly_identical(envs_to_close):
+    default, fast = make_env("dmc_cheetah_run", seed=0), make_env("dmc_cheetah_run", seed=0, fast_render=True)
+    envs_to_close.extend([default, fast])
+    difference = np.abs(default.reset()[0].astype(np.int16) - fast.reset()[0])
+    assert 0 < difference.mean() < 4  # the shadows and reflections really are off, and little else moves
+
+
+def test_robodesk_frames_match_robodesk_own_renderer(monkeypatch, envs_to_close):
+    from PIL import Image
+
+    monkeypatch.setattr(Image, "ANTIALIAS", Image.LANCZOS, raising=False)  # Pillow >= 10 removed it
+    env = make_env("robodesk_open_slide", seed=0)
+    envs_to_close.append(env)
+    env.reset()
+    env.step(env.action_space.sample())
+    assert np.array_equal(env.render(), env._env.render(resize=True))
+
+
+def test_robodesk_seeding_leaves_numpy_global_state_alone(envs_to_close):
+    np.random.seed(123)
+    expected = np.random.rand(3)
+    np.random.seed(123)
+    env = make_env("robodesk_push_green", seed=0, fast_render=True)
+    envs_to_close.append(env)
+    env.reset()
+    assert np.array_equal(np.random.rand(3), expected)
+
+
+@pytest.mark.parametrize("name", [name for name in PAPER_TASKS if name.startswith("dmc")])
+def test_every_paper_dmc_task_builds_and_steps(name, envs_to_close):
+    env = make_env(name, seed=0, fast_render=True, time_limit=2)
+    envs_to_close.append(env)
+    obs, _ = env.reset()
+    assert obs.std() > 5
+    env.step(env.action_space.sample())
+    assert env.step(env.action_space.sample())[3] is True
+
+
+def test_any_dmc_task_and_action_repeat_override(envs_to_close):
+    env = make_env("dmc_ball_in_cup_catch", seed=0, image_size=32, action_repeat=4, fast_render=True)
+    envs_to_close.append(env)
+    assert env.reset()[0].shape == (3, 32, 32)
+    assert (env.action_repeat, env.time_limit) == (4, 250)
+
+
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [
+        ("dmc_cheetah_fly", "dmc_cheetah_run"),  # lists the valid DMC names
+        ("metaworld_dial_spin", "metaworld_dial_turn"),
+        ("robodesk_stack", "robodesk_push_green"),
+        ("atari_pong", "dmc_, metaworld_, robodesk_"),
+    ],
+)
+def test_unknown_name_fails_with_the_valid_ones(name, message):
+    with pytest.raises(ValueError, match=message):
+        make_env(name, seed=0)
+
+
+def test_normalised_return_uses_table_4():
+    assert normalised_return("dmc_cheetah_run", 71.0) == 0.0
+    assert normalised_return("dmc_cheetah_run", 821.0) == 1.0
+    assert normalised_return("robodesk_open_slide", 92.0) == pytest.approx(0.5)
+    assert all(normalised_return(name, 0.0) < 0 for name in PAPER_TASKS)  # all ten have references
+    with pytest.raises(KeyError, match="dmc_cheetah_run"):
+        normalised_return("dmc_cartpole_swingup", 100.0)
+
+
+class _Counter(PixelEnv):
+    """A stand-in simulator that records the native actions it receives (tests `PixelEnv` alone)."""
+
+    def __init__(self, action_repeat: int, terminate_at: int | None = None) -> None:
+        super().__init__("counter", 0, np.array([0.0, -2.0]), np.array([10.0, 2.0]), 8, action_repeat, 100)
+        self.native_actions: list[np.ndarray] = []
+        self.terminate_at = terminate_at
+
+    def _seed_sim(self, seed):
+        pass
+
+    def _reset_sim(self):
+        self.native_actions.clear()
+
+    def _step_sim(self, action):
+        self.native_actions.append(action)
+        terminated = len(self.native_actions) == self.terminate_at
+        return 1.0, terminated, False, len(self.native_actions) == 2
+
+    def _render_frame(self):
+        return np.zeros((8, 8, 3), np.uint8)
+
+
+def test_pixel_env_rescales_repeats_and_sums():
+    env = _Counter(action_repeat=3)
+    env.reset()
+    _, reward, terminated, truncated, info = env.step(np.array([-1.0, 5.0]))  # 5 is clipped to 1
+    assert reward == 3.0 and not terminated and not truncated
+    assert info["success"] == 1.0  # success at the second of the three simulator steps counts
+    np.testing.assert_allclose(env.native_actions, [[0.0, 2.0]] * 3)
+
+
+def test_pixel_env_stops_repeating_at_a_terminal():
+    env = _Counter(action_repeat=3, terminate_at=2)
+    env.reset()
+    _, reward, terminated, truncated, _ = env.step(np.zeros(2))
+    assert (reward, terminated, truncated) == (2.0, True, False)
+    np.testing.assert_allclose(env.native_actions, [[5.0, 0.0]] * 2)

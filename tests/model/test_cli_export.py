@@ -1,0 +1,128 @@
+"""`hauwm pretrain fit | export | analyze` on the built-in data: training lowers the loss, the export
+reproduces the trained module without unpickling, bad settings fail with clear messages."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import shutil
+
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from model.cli import main
+from model.export import ExportError, FrozenWorldModel, load_frozen
+from model.module import PretrainModule
+from model.rssm import RSSMState
+
+from conftest import RUN_STEPS, fit
+
+
+def scalars(run, tag: str) -> list[float]:
+    events = EventAccumulator(str(next((run / "lightning_logs").glob("version_*"))), size_guidance={"scalars": 0})
+    events.Reload()
+    return [event.value for event in events.Scalars(tag)]
+
+
+def test_a_few_steps_of_tiny_lower_the_loss(tiny_run):
+    losses = scalars(tiny_run, "train/loss")
+    assert len(losses) == RUN_STEPS
+    assert sum(losses[-5:]) / 5 < 0.7 * sum(losses[:5]) / 5
+
+
+def test_every_loss_term_and_lambda_is_logged_every_step(tiny_run):
+    for tag in ("recon_nll", "kl", "kl_balanced", "hcu", "disagreement", "lambda", "log_lambda", "skipped_steps"):
+        assert len(scalars(tiny_run, f"train/{tag}")) == RUN_STEPS, tag
+    assert scalars(tiny_run, "train/skipped_steps")[-1] == 0
+    for k in range(1, 6):  # validation per gap k
+        assert scalars(tiny_run, f"val/disagreement_k{k}")
+    assert scalars(tiny_run, "val/spearman_k_disagreement")
+
+
+def test_export_reproduces_the_trained_module(tiny_run, tiny_export, fake_batch):
+    module = PretrainModule.load_from_checkpoint(tiny_run / "checkpoints" / "last.ckpt", map_location="cpu").eval()
+    frozen = load_frozen(tiny_export)
+    assert isinstance(frozen, FrozenWorldModel) and not frozen.training
+    assert not any(p.requires_grad for p in frozen.parameters())
+    config = frozen.config
+    assert config["schema_version"] == 1 and config["ensemble"] == 7 and config["temporal_mode"] == "relative"
+    assert config["normalisation"]["offset"] == -0.5 and config["provenance"]["global_step"] == RUN_STEPS
+    with torch.no_grad():
+        outputs = []
+        for world_model in (module.world_model, frozen):
+            obs = world_model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"],
+                                      torch.Generator().manual_seed(3))
+            outputs.append((obs.prior_mean, obs.post_mean, world_model.decode(RSSMState(obs.deter, obs.stoch))))
+    for trained, exported in zip(*outputs):
+        assert torch.equal(trained, exported)
+
+
+def test_export_loads_without_unpickling(tiny_export, monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("load_frozen must not unpickle")
+
+    monkeypatch.setattr(pickle, "load", refuse)
+    monkeypatch.setattr(pickle, "loads", refuse)
+    monkeypatch.setattr(pickle, "Unpickler", refuse)
+    monkeypatch.setattr(torch, "load", refuse)
+    assert load_frozen(tiny_export).rssm.ensemble == 7
+
+
+def test_export_errors_are_clear(tiny_export, tmp_path):
+    with pytest.raises(ExportError, match="not a HAUWM export.*hauwm pretrain export"):
+        load_frozen(tmp_path)
+    wrong_version = tmp_path / "v2"
+    shutil.copytree(tiny_export, wrong_version)
+    config = json.loads((wrong_version / "config.json").read_text())
+    (wrong_version / "config.json").write_text(json.dumps({**config, "schema_version": 2}))
+    with pytest.raises(ExportError, match="schema_version 2"):
+        load_frozen(wrong_version)
+    wrong_shape = tmp_path / "shape"
+    shutil.copytree(tiny_export, wrong_shape)
+    (wrong_shape / "config.json").write_text(json.dumps({**config, "deter": config["deter"] + 8}))
+    with pytest.raises(ExportError, match=r"does not match .*config.json.*rssm\.cell"):
+        load_frozen(wrong_shape)
+    (wrong_shape / "weights.safetensors").unlink()
+    with pytest.raises(ExportError, match="weights.safetensors not found"):
+        load_frozen(wrong_shape)
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--model.ensemble", "1"], "HCU needs an ensemble of at least 2 heads"),
+        (["--data.k_max", "0"], "k_max"),
+        (["--trainer.max_steps", "1", "--data.shards", "/nonexistent/shards"], "/nonexistent/shards does not exist"),
+    ],
+)
+def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, capsys, flags, message):
+    assert fit(built_shards, tmp_path, *flags) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_a_checkpoint_of_another_model_size_is_refused(built_shards, tiny_run, tmp_path, capsys):
+    code = fit(built_shards, tmp_path, "--model.deter", "48", "--ckpt_path", str(tiny_run / "checkpoints" / "last.ckpt"))
+    assert code == 2
+    assert "different model size (deter: checkpoint 64 vs this run 48)" in capsys.readouterr().err
+
+
+def test_export_of_a_missing_checkpoint_is_refused(tmp_path, capsys):
+    assert main(["export", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "out")]) == 2
+    assert "none.ckpt not found" in capsys.readouterr().err
+
+
+def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path):
+    out = tmp_path / "analysis"
+    args = ["analyze", "--model", str(tiny_export), "--model", str(tiny_export), "--shards", str(built_shards),
+            "--out", str(out), "--batches", "2", "--batch-size", "3", "--seq-len", "8", "--heads", "3"]
+    assert main(args) == 0
+    figures = json.loads((out / "figures.json").read_text())
+    assert len(figures["models"]) == 2
+    horizon = figures["models"][0]["horizon"]
+    assert horizon["k"] == [1, 2, 3, 4, 5] and sum(horizon["count"]) == 2 * 3 * 7
+    assert len(figures["models"][0]["rollout"]["disagreement"]) == 4
+    for png in ["disagreement_vs_k.png", *(f"rollouts_{i}-{tiny_export.name}.png" for i in range(2))]:
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -1,0 +1,80 @@
+"""EnsembleRSSM: shapes and dtypes through the model, the batched heads against a per-head reference."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from model.rssm import EnsembleRSSM, RSSMState
+from model.world_model import WorldModel
+
+
+def small_rssm(ensemble: int = 5) -> EnsembleRSSM:
+    torch.manual_seed(0)
+    return EnsembleRSSM(embed_dim=12, cond_dim=8, deter=20, stoch=6, hidden=16, ensemble=ensemble)
+
+
+def test_steps_return_documented_shapes_and_float32():
+    rssm = small_rssm()
+    prev = rssm.initial(4, "cpu")
+    assert prev.deter.shape == (4, 20) and prev.stoch.shape == (4, 6)
+    deter, mean, std = rssm.img_step(prev, torch.randn(4, 8))
+    assert deter.shape == (4, 20) and mean.shape == std.shape == (5, 4, 6)
+    post, post_mean, post_std, prior_mean, prior_std = rssm.obs_step(prev, torch.randn(4, 8), torch.randn(4, 12))
+    assert isinstance(post, RSSMState) and post.stoch.shape == post_mean.shape == post_std.shape == (4, 6)
+    assert prior_mean.shape == (5, 4, 6)
+    assert rssm.feature(post).shape == (4, 26)
+    assert all(t.dtype == torch.float32 for t in (post_mean, post_std, prior_mean, prior_std))
+    assert (std >= 0.1).all() and (post_std >= 0.1).all() and (std <= 1.0).all() and (post_std <= 1.0).all()
+
+
+def test_observe_and_imagine_shapes():
+    rssm = small_rssm()
+    obs = rssm.observe(torch.randn(3, 7, 12), torch.randn(3, 7, 8))
+    assert obs.deter.shape == (3, 7, 20) and obs.stoch.shape == (3, 7, 6)
+    assert obs.post_mean.shape == (3, 7, 6) and obs.prior_mean.shape == obs.prior_std.shape == (5, 3, 7, 6)
+    states, means = rssm.imagine(obs.state(6), torch.randn(3, 4, 8))
+    assert states.deter.shape == (3, 4, 20) and states.stoch.shape == (3, 4, 6) and means.shape == (5, 3, 4, 6)
+    # along the ensemble-mean path, each next stoch is the mean over heads
+    assert torch.allclose(states.stoch, means.mean(0))
+    head_states, _ = rssm.imagine(obs.state(6), torch.randn(3, 4, 8), head=2)
+    assert head_states.stoch.shape == (3, 4, 6)
+
+
+def test_batched_heads_equal_a_per_head_reference():
+    rssm = small_rssm(ensemble=7)
+    deter = torch.randn(9, 20)
+    mean, std = rssm.heads(deter)
+    for i in range(7):
+        hidden = F.elu(deter @ rssm.prior_hidden.weight[i] + rssm.prior_hidden.bias[i])
+        raw = hidden @ rssm.prior_out.weight[i] + rssm.prior_out.bias[i]
+        ref_mean, ref_std = raw.chunk(2, -1)
+        assert torch.allclose(mean[i], ref_mean, atol=1e-6)
+        assert torch.allclose(std[i], 0.1 + 0.9 * torch.sigmoid(ref_std + 2.0), atol=1e-6)
+    # and the heads really differ (independent initialisation)
+    assert not torch.allclose(mean[0], mean[1])
+
+
+def test_distribution_parameters_stay_float32_under_autocast():
+    rssm = small_rssm()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        obs = rssm.observe(torch.randn(2, 3, 12), torch.randn(2, 3, 8))
+    assert obs.prior_mean.dtype == obs.prior_std.dtype == obs.post_std.dtype == torch.float32
+
+
+def test_world_model_observes_a_loader_batch(fake_batch, small_sizes):
+    model = WorldModel(**small_sizes)
+    obs = model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"])
+    B, L = fake_batch["gaps"].shape
+    assert obs.deter.shape == (B, L, small_sizes["deter"]) and obs.prior_mean.shape == (small_sizes["ensemble"], B, L, small_sizes["stoch"])
+    images = model.decode(RSSMState(obs.deter, obs.stoch))
+    assert images.shape == (B, L, 3, 64, 64) and images.dtype == torch.float32
+
+
+def test_posterior_noise_follows_the_generator():
+    rssm = small_rssm()
+    embeds, conds = torch.randn(2, 4, 12), torch.randn(2, 4, 8)
+    a = rssm.observe(embeds, conds, generator=torch.Generator().manual_seed(1))
+    b = rssm.observe(embeds, conds, generator=torch.Generator().manual_seed(1))
+    c = rssm.observe(embeds, conds, generator=torch.Generator().manual_seed(2))
+    assert torch.equal(a.stoch, b.stoch) and not torch.equal(a.stoch, c.stoch)
