@@ -3,13 +3,16 @@
     python bench/bench_agent.py                       # paper sizes and a small CPU setting, 1 thread
     python bench/bench_agent.py --threads 2 --updates 5
 
-Each setting builds a dual-stream agent on a freshly initialised export (timing does not depend on the
-weights' values), then times `--updates` updates on random 64×64 batches after one warm-up update.
+Each setting builds the dual-stream agent on a freshly initialised export (timing does not depend on
+the weights' values) and the scratch baseline with the same RSSM sizes, then times `--updates` updates
+on random 64×64 batches after one warm-up update.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
 import platform
 import sys
 import tempfile
@@ -33,15 +36,16 @@ SETTINGS = {
     # name: (export sizes, agent config)
     "paper (32x50, 400 units, cnn 32)": (dict(), dict(batch_size=32, seq_len=50)),
     "small (16x32, 200 units, cnn 16)": (dict(cnn_width=16, embed_dim=256, deter=100, stoch=20, hidden=100),
-                                         dict(batch_size=16, seq_len=32, units=200, hidden=100)),
+                                         dict(batch_size=16, seq_len=32, units=200, hidden=100, encoder_width=16)),
 }
 
 
 def bench(name: str, export_sizes: dict, agent_cfg: dict, updates: int, agent_kind: str) -> float:
     torch.manual_seed(0)
     cfg = FinetuneConfig(agent=agent_kind, **agent_cfg)
-    if agent_kind == "scratch":
-        agent = Agent(cfg, ACTION_DIM)
+    if agent_kind == "scratch":  # same RSSM sizes as the export, its own encoder and decoder
+        sizes = {k: export_sizes[k] for k in ("deter", "stoch") if k in export_sizes}
+        agent = Agent(dataclasses.replace(cfg, **sizes), ACTION_DIM)
     else:
         with tempfile.TemporaryDirectory() as tmp:
             frozen = load_pretrained(export_frozen(WorldModel(**export_sizes), tmp))
@@ -60,12 +64,12 @@ def bench(name: str, export_sizes: dict, agent_cfg: dict, updates: int, agent_ki
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--updates", type=int, default=3)
+    parser.add_argument("--updates", type=int, default=2)
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"{args.threads} thread(s), CPU, {args.updates} timed updates, imagination horizon 15")
+    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, {args.threads} "
+          f"thread(s), CPU, {args.updates} timed updates after one warm-up, imagination horizon 15")
     print(f"{'setting':<36} {'agent':<8} {'updates/s':>10}")
     for name, (export_sizes, agent_cfg) in SETTINGS.items():
         for kind in ("hauwm", "scratch"):

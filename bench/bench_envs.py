@@ -59,7 +59,8 @@ def main() -> int:
     parser.add_argument("--min-steps", type=int, default=5, help="agent steps per task and mode at least")
     args = parser.parse_args()
 
-    print(f"machine: {cpu_name()}, {os.cpu_count()} cores visible, {platform.platform()}")
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"machine: {cpu_name()}, {os.cpu_count()} cores visible, {platform.platform()}, load average {load}")
     print(
         f"settings: MUJOCO_GL={os.environ['MUJOCO_GL']}, 64x64 frames, one process, random actions, seed 0; "
         f"mujoco {version('mujoco')}, dm-control {version('dm-control')}, metaworld {version('metaworld')}, "

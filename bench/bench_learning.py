@@ -26,7 +26,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
-import torch._dynamo  # noqa: E402,F401  before MuJoCo's OSMesa context (see finetune/train.py)
 
 from finetune.config import FinetuneConfig  # noqa: E402
 from finetune.train import train  # noqa: E402

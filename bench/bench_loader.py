@@ -1,8 +1,10 @@
-"""Loader throughput: sequences/s on one core at L = 16 (aim: at least 1,000), and with 2 workers.
+"""Loader throughput: sequences/s per core at L = 16 (aim: at least 1,000), in-process and with 2 workers.
 
 Builds shards from the built-in sample data (or uses `--shards DIR`), then times `SequenceDataset`
 (tar reading, shuffle buffer, gap sampling, decoding only the L sampled JPEG frames, collation) in the
-main process (one core: torch and OpenCV limited to one thread) and through a DataLoader with 2 workers.
+main process (torch and OpenCV limited to one thread) and through a DataLoader with 2 workers. Reports
+wall-clock rates and rates per CPU second (CPU time of the process and its workers), which stay
+meaningful on a machine shared with other jobs.
 
     python bench/bench_loader.py [--shards DIR] [--seq-len 16] [--batch-size 32] [--batches 150]
 """
@@ -12,6 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import resource
 import sys
 import tempfile
 import time
@@ -34,13 +37,18 @@ def machine() -> str:
     return f"{model}, {len(os.sched_getaffinity(0))} cores available, torch {torch.__version__}"
 
 
-def time_batches(batches, count: int) -> tuple[float, int]:
-    iterator = iter(batches)
-    next(iterator)  # start-up (worker processes, first shard) is not throughput
-    started, sequences = time.perf_counter(), 0
-    for batch in iterator:
+def cpu_seconds() -> float:
+    """CPU time of this process and of its finished children (DataLoader workers)."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def time_batches(batches) -> tuple[float, float, int]:
+    """Wall seconds, CPU seconds and sequences of one pass (start-up included: workers, first shards)."""
+    started, cpu_started, sequences = time.perf_counter(), cpu_seconds(), 0
+    for batch in batches:
         sequences += len(batch["id"])
-    return time.perf_counter() - started, sequences
+    return time.perf_counter() - started, cpu_seconds() - cpu_started, sequences
 
 
 def main() -> None:
@@ -60,18 +68,17 @@ def main() -> None:
         shards = work / "shards"
         build(BuildConfig(annotations=work / "ssv2" / "annotations", videos=work / "ssv2" / "videos", out=shards,
                           splits=["train"], clips_per_shard=8, workers=2), log=lambda message: None)
-    print(f"machine: {machine()}")
+    print(f"machine: {machine()}, load average {os.getloadavg()[0]:.1f} at the start")
     print(f"settings: L={args.seq_len}, K_max={args.k_max}, batch {args.batch_size}, shuffle buffer 256, "
           f"shards {shards}")
     for workers in (0, 2):
         dataset = SequenceDataset(shard_set(shards, "train"), batch_size=args.batch_size, seq_len=args.seq_len,
                                   k_max=args.k_max, num_workers=workers,
-                                  batches_per_worker=args.batches // max(1, workers) + 1)
-        seconds, sequences = time_batches(dataset if workers == 0 else make_dataloader(dataset), args.batches)
-        label = "main process (1 core)" if workers == 0 else f"DataLoader, {workers} workers"
-        print(f"{label}: {sequences / seconds:.0f} sequences/s, {sequences * args.seq_len / seconds:.0f} frames/s"
-              + (f", {sequences / seconds / workers:.0f} sequences/s per worker" if workers else ""))
-
+                                  batches_per_worker=args.batches // max(1, workers))
+        seconds, cpu, sequences = time_batches(dataset if workers == 0 else make_dataloader(dataset))
+        label = "main process" if workers == 0 else f"DataLoader, {workers} workers"
+        print(f"{label}: {sequences / seconds:.0f} sequences/s wall, {sequences / cpu:.0f} sequences "
+              f"({sequences * args.seq_len / cpu:.0f} frames) per CPU second")
 
 if __name__ == "__main__":
     main()

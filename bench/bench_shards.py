@@ -2,8 +2,8 @@
 
 Prints, for the built-in sample data (`hauwm shards sample-data`): the bare loop's clips/s and frames/s
 (decord, one thread, resize to 64×64, in one process), the build's clips/s and frames/s with 1 and 2
-workers (decode + JPEG encode + tar writing + hashing; per worker and in all), its ratio to the bare
-loop, the peak memory of the build's main process and of its largest worker for two dataset sizes
+workers (decode + JPEG encode + tar writing + hashing; wall clock, and per CPU second of the workers),
+its ratio to the bare loop, the peak memory of the build's main process and of its largest worker for two dataset sizes
 (it should stay flat as the dataset grows), and the bytes per frame of each encoding.
 
     python bench/bench_shards.py [--clips 48] [--keep DIR]
@@ -15,6 +15,7 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -40,9 +41,10 @@ started = time.perf_counter()
 manifest, _ = build(config, log=lambda message: None)
 elapsed = time.perf_counter() - started
 split = manifest["splits"]["train"]
+own, workers = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
 print(json.dumps({"seconds": elapsed, "clips": split["clips"], "frames": split["frames"], "bytes": split["bytes"],
-                  "main_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "worker_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}))
+                  "main_cpu": own.ru_utime + own.ru_stime, "worker_cpu": workers.ru_utime + workers.ru_stime,
+                  "main_rss_mb": own.ru_maxrss / 1024, "worker_rss_mb": workers.ru_maxrss / 1024}))
 """
 
 
@@ -53,6 +55,7 @@ def machine() -> str:
 
 
 def run_build(data: Path, out: Path, workers: int, max_clips: int | None, encoding: str = "jpeg") -> dict:
+    shutil.rmtree(out, ignore_errors=True)  # a fresh build, not a resume
     args = {"annotations": str(data / "annotations"), "videos": str(data / "videos"), "out": str(out),
             "workers": workers, "max_clips": max_clips, "encoding": encoding}
     result = subprocess.run([sys.executable, "-c", MEASURE_BUILD, json.dumps(args)], capture_output=True, text=True,
@@ -60,12 +63,13 @@ def run_build(data: Path, out: Path, workers: int, max_clips: int | None, encodi
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
-def bare_loop(data: Path) -> tuple[float, int, int]:
+def bare_loop(data: Path) -> tuple[float, float, int, int]:
+    """Wall and CPU seconds, clips and frames of decoding and resizing every train clip in this process."""
     records = load_split(data / "annotations", "train")
-    started, frames = time.perf_counter(), 0
+    started, cpu_started, frames = time.perf_counter(), time.process_time(), 0
     for record in records:
         frames += len(decode_clip(data / "videos" / f"{record.id}.webm", 64).frames)
-    return time.perf_counter() - started, len(records), frames
+    return time.perf_counter() - started, time.process_time() - cpu_started, len(records), frames
 
 
 def main() -> None:
@@ -77,16 +81,19 @@ def main() -> None:
     data = work / "ssv2"
     if not (data / "annotations").is_dir():
         make_sample_data(data, args.clips, workers=2)
-    print(f"machine: {machine()}")
-    seconds, clips, frames = bare_loop(data)
-    bare_fps = frames / seconds
+    print(f"machine: {machine()}, load average {os.getloadavg()[0]:.1f} at the start")
+    seconds, cpu, clips, frames = bare_loop(data)
+    bare_fps = frames / cpu
     print(f"data: {clips} train clips, {frames} frames (sample data, 240 px high VP9, 24–60 frames per clip)")
-    print(f"bare decode+resize loop (1 process): {clips / seconds:.1f} clips/s, {bare_fps:.0f} frames/s")
+    print(f"bare decode+resize loop (1 process): {frames / seconds:.0f} frames/s wall, "
+          f"{bare_fps:.0f} frames per CPU second")
     for workers in (1, 2):
         result = run_build(data, work / f"shards-w{workers}", workers, None)
-        fps = result["frames"] / result["seconds"]
-        print(f"build --workers {workers}: {result['clips'] / result['seconds']:.1f} clips/s, {fps:.0f} frames/s in all, "
-              f"{fps / workers:.0f} frames/s per worker ({fps / workers / bare_fps:.0%} of the bare loop per worker)")
+        per_worker = result["frames"] / result["worker_cpu"]
+        print(f"build --workers {workers}: {result['clips'] / result['seconds']:.1f} clips/s and "
+              f"{result['frames'] / result['seconds']:.0f} frames/s wall; per worker "
+              f"{result['clips'] / result['worker_cpu']:.1f} clips and {per_worker:.0f} frames per CPU second "
+              f"({per_worker / bare_fps:.0%} of the bare loop); main process {result['main_cpu']:.1f} CPU s")
     for max_clips in (clips // 4, clips):
         result = run_build(data, work / f"shards-mem-{max_clips}", 1, max_clips)
         print(f"peak memory, {max_clips} clips: main process {result['main_rss_mb']:.0f} MB, "

@@ -74,8 +74,9 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _write_json_atomic(path: Path, data, lines: list[dict] | None = None) -> None:
-    partial = path.with_name(f".{path.name}.partial")
+def _write_json_atomic(path: Path, data, lines: list[dict] | None = None, writer: int = 0) -> None:
+    """Write to a temporary name, then rename; `writer` (the part) keeps parts that run at once apart."""
+    partial = path.with_name(f".{path.name}.partial{writer}")
     text = json.dumps(data, indent=1, sort_keys=True) + "\n" if lines is None else \
         "".join(json.dumps(line, sort_keys=True) + "\n" for line in lines)
     partial.write_text(text)
@@ -108,7 +109,7 @@ def plan_shards(config: BuildConfig) -> list[ShardPlan]:
     return plans
 
 
-def check_settings(out: Path, settings: dict) -> None:
+def check_settings(out: Path, settings: dict, part: int) -> None:
     """Record the settings in a fresh directory; refuse a resume whose settings differ."""
     path = out / SETTINGS_FILE
     if path.is_file():
@@ -121,7 +122,7 @@ def check_settings(out: Path, settings: dict) -> None:
     elif any(out.glob("*.tar")):
         raise BuildError(f"{out} holds shards but no {SETTINGS_FILE}; build into a new --out directory.")
     else:
-        _write_json_atomic(path, settings)
+        _write_json_atomic(path, settings, writer=part)
 
 
 def settings_digest(settings: dict) -> str:
@@ -200,8 +201,8 @@ def assemble_manifest(config: BuildConfig, settings: dict, plans: list[ShardPlan
         errors += stats["errors"]
     manifest = {"format_version": FORMAT_VERSION, "settings": settings, "splits": splits,
                 "errors": {"total": len(errors), "by_reason": dict(sorted(Counter(e["reason"] for e in errors).items()))}}
-    _write_json_atomic(config.out / ERRORS_FILE, None, lines=errors)
-    _write_json_atomic(config.out / MANIFEST_FILE, manifest)
+    _write_json_atomic(config.out / ERRORS_FILE, None, lines=errors, writer=config.part)
+    _write_json_atomic(config.out / MANIFEST_FILE, manifest, writer=config.part)
     return manifest
 
 
@@ -218,6 +219,8 @@ def validate(config: BuildConfig) -> None:
                         ("--workers", config.workers), ("--min-frames", config.min_frames)):
         if value < 1:
             raise BuildError(f"{flag} must be at least 1, got {value}")
+    if config.max_clips is not None and config.max_clips < 1:
+        raise BuildError(f"--max-clips must be at least 1, got {config.max_clips}")
     if not 1 <= config.quality <= 100:
         raise BuildError(f"--quality must lie in 1..100, got {config.quality}")
 
@@ -228,7 +231,7 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
     validate(config)
     config.out.mkdir(parents=True, exist_ok=True)
     settings = settings_of(config)
-    check_settings(config.out, settings)
+    check_settings(config.out, settings, config.part)
     digest = settings_digest(settings)
     plans = plan_shards(config)
     mine = [plan for i, plan in enumerate(plans) if i % config.num_parts == config.part]

@@ -25,6 +25,9 @@ def _build(args: argparse.Namespace) -> int:
     except (BuildError, AnnotationError) as error:
         print(f"hauwm shards build: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("\nhauwm shards build: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
     return status
 
 

@@ -23,9 +23,9 @@ class SetEpoch(lightning.Callback):
     """Sets the train dataset's epoch at the start of each epoch, before the DataLoader starts its workers."""
 
     def on_train_epoch_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
-        datamodule = trainer.datamodule
-        if isinstance(datamodule, ShardDataModule) and datamodule.train_set is not None:
-            datamodule.train_set.set_epoch(trainer.current_epoch)
+        dataset = getattr(trainer.train_dataloader, "dataset", None)
+        if isinstance(dataset, SequenceDataset):
+            dataset.set_epoch(trainer.current_epoch)
 
 
 class ShardDataModule(lightning.LightningDataModule):

@@ -18,12 +18,11 @@ import cv2
 import numpy as np
 
 RESIZE_MODES = ("squash", "center-crop")
-REASONS = ("missing", "empty", "undecodable", "corrupt", "too-short", "timeout", "crashed")
 DECLARED_SLACK = 2  # frames a container's declared duration may exceed the decoded count by
 
 
 class ClipError(Exception):
-    """A clip that cannot go into a shard; `reason` is one of `REASONS`."""
+    """A clip that cannot go into a shard; `reason` is `missing`, `empty`, `undecodable`, `corrupt` or `too-short`."""
 
     def __init__(self, reason: str, detail: str):
         super().__init__(f"{reason}: {detail}")
@@ -36,7 +35,6 @@ class DecodedClip:
     source_width: int
     source_height: int
     fps: float
-    backend: str
 
 
 def resize_frame(frame: np.ndarray, size: int, mode: str) -> np.ndarray:
@@ -109,8 +107,6 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
     resized = [resize_frame(first[0], size, resize)]
     try:
         resized += [resize_frame(frame, size, resize) for frame, _ in frames_iter]
-    except ClipError:
-        raise
     except Exception as error:  # DECORDLimitReachedError: frames were recovered from corrupt data
         raise ClipError("corrupt", f"{backend}: {str(error).strip().splitlines()[0][:200]}") from None
     declared = declared_frame_count(path)
@@ -118,4 +114,4 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
         raise ClipError("corrupt", f"decoded {len(resized)} of the {declared} frames the container declares")
     if len(resized) < min_frames:
         raise ClipError("too-short", f"{len(resized)} frames, fewer than --min-frames {min_frames}")
-    return DecodedClip(np.stack(resized), int(source_width), int(source_height), fps, backend)
+    return DecodedClip(np.stack(resized), int(source_width), int(source_height), fps)

@@ -81,7 +81,8 @@ def collate(samples: list[dict]) -> dict:
     """Sequences → the batch of docs/architecture.md §2."""
     indices = np.stack([s["indices"] for s in samples])  # [B, L]
     return {
-        "frames": torch.from_numpy(np.stack([s["frames"] for s in samples])),  # uint8 [B, L, 3, H, W]
+        "frames": torch.from_numpy(np.stack([s["frames"] for s in samples])).permute(0, 1, 4, 2, 3).contiguous(),
+        # uint8 [B, L, 3, H, W]
         "gaps": torch.from_numpy(gaps_of(indices)),  # int64 [B, L], gaps[:, 0] == 0
         "indices": torch.from_numpy(indices),  # int64 [B, L]
         "num_frames": torch.tensor([s["num_frames"] for s in samples], dtype=torch.int64),  # [B]
@@ -91,14 +92,13 @@ def collate(samples: list[dict]) -> dict:
 
 
 def to_sequence(sample: dict, seq_len: int, k_max: int, rng: np.random.Generator) -> dict | None:
-    """A tar sample → L sampled frames `uint8 [L, 3, H, W]` and their facts; None for a too-short clip."""
+    """A tar sample → L sampled frames `uint8 [L, H, W, 3]` and their facts; None for a too-short clip."""
     metadata = json.loads(sample["json"])
     indices = sample_indices(metadata["num_frames"], seq_len, k_max, rng)
     if indices is None:
         return None
     extension = "jpgs" if "jpgs" in sample else "npy"
-    frames = decode_frames(sample[extension], extension, indices)  # [L, H, W, 3]
-    return {"frames": np.ascontiguousarray(frames.transpose(0, 3, 1, 2)), "indices": indices,
+    return {"frames": decode_frames(sample[extension], extension, indices), "indices": indices,
             "num_frames": metadata["num_frames"], "label": metadata["class_index"], "id": metadata["id"]}
 
 

@@ -25,7 +25,7 @@ class Agent(nn.Module):
         self.behavior = ActorCritic(
             self.world_model.feature_dim, action_dim, cfg.units, cfg.horizon, cfg.gamma, cfg.lam, cfg.actor_lr,
             cfg.critic_lr, cfg.entropy_scale, cfg.target_fraction, cfg.grad_clip)
-        self.batch_size, self.seq_len = cfg.batch_size, cfg.seq_len
+        self.action_dim = action_dim
 
     @property
     def device(self) -> torch.device:
@@ -39,8 +39,7 @@ class Agent(nn.Module):
 
     def initial(self) -> tuple[Latent, torch.Tensor]:
         """The latent and the zero 'previous action' at the start of an episode (batch of one)."""
-        action_dim = self.behavior.actor.net[-1].out_features // 2
-        return self.world_model.initial(1, self.device), torch.zeros(1, action_dim, device=self.device)
+        return self.world_model.initial(1, self.device), torch.zeros(1, self.action_dim, device=self.device)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, latent: Latent, prev_action: torch.Tensor, explore: bool) -> tuple[np.ndarray, Latent, torch.Tensor]:

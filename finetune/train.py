@@ -11,13 +11,13 @@ has them. `checkpoint.pt` in the run directory holds everything but the frozen e
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch._dynamo  # noqa: F401  before any MuJoCo/OSMesa context: triton (which torch.optim imports lazily) segfaults once OSMesa's LLVM is loaded
 import yaml
 from tqdm import tqdm
 
@@ -31,6 +31,11 @@ CHECKPOINT = "checkpoint.pt"
 
 class FinetuneError(RuntimeError):
     """A problem the user can fix (bad flags, a run directory from another task); printed without a traceback."""
+
+
+def next_multiple(step: int, every: int) -> int:
+    """The first multiple of `every` after `step` (the next log, evaluation or checkpoint)."""
+    return (step // every + 1) * every
 
 
 def resolve_device(name: str) -> torch.device:
@@ -50,19 +55,37 @@ def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | N
         raise FinetuneError("agent 'hauwm' needs --pretrained DIR (an export of `hauwm pretrain export`); "
                             "or run the scratch baseline with --set agent=scratch")
     frozen = load_pretrained(pretrained)
-    return Agent(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
+    try:
+        return Agent(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
+    except ValueError as error:  # sizes of the config that do not fit the export
+        raise FinetuneError(f"--pretrained {pretrained}: {error}") from None
 
 
-def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, int]) -> None:
+def export_fingerprint(pretrained: str | Path | None) -> str:
+    """sha256 of the export's weights ('' for the scratch baseline): a resume must use the same export."""
+    if pretrained is None:
+        return ""
+    digest = hashlib.sha256()
+    with open(Path(pretrained) / "weights.safetensors", "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, int], fingerprint: str) -> None:
     state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
-             "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state()}
+             "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state(),
+             "export_sha256": fingerprint}
     tmp = path.with_suffix(".tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig) -> dict[str, int]:
+def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str) -> dict[str, int]:
     state = torch.load(path, map_location=agent.device, weights_only=True)
+    if state["export_sha256"] != fingerprint:
+        raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
+                            "pass the same export or use another --logdir")
     for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units"):
         if state["config"][key] != getattr(cfg, key):
             raise FinetuneError(f"{path} was written by a run with {key}={state['config'][key]!r}, this run has "
@@ -113,13 +136,17 @@ def train(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: b
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     env_kwargs = dict(action_repeat=cfg.action_repeat, fast_render=cfg.fast_render, time_limit=cfg.time_limit)
-    probe = make_env(cfg.task, seed=cfg.seed, **env_kwargs)
+    try:
+        probe = make_env(cfg.task, seed=cfg.seed, **env_kwargs)
+    except ValueError as error:  # an unknown task name
+        raise FinetuneError(f"task {cfg.task!r}: {error}") from None
     agent = build_agent(cfg, probe.action_space.shape[0], pretrained, device)
+    fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
     counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
                 "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
     checkpoint = logdir / CHECKPOINT
     if checkpoint.exists():
-        counters = load_checkpoint(checkpoint, agent, cfg)
+        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint)
     logdir.mkdir(parents=True, exist_ok=True)
     (logdir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
 
@@ -137,7 +164,7 @@ def train(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: b
     latent, prev_action = agent.initial()
     episode = {"obs": [obs], "action": [np.zeros(env.action_space.shape, np.float32)], "reward": [0.0]}
     last_eval: dict[str, float] = {}
-    bar = tqdm(total=cfg.steps, initial=counters["env_step"], unit="step", desc=cfg.task, disable=not progress,
+    bar = tqdm(total=cfg.steps, initial=counters["env_step"], unit=" env step", desc=cfg.task, disable=not progress,
                dynamic_ncols=True)
     window = {"time": time.perf_counter(), "updates": counters["updates"], "metrics": []}
     while counters["env_step"] < cfg.steps:
@@ -174,15 +201,15 @@ def train(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: b
             logger.write("train", counters["env_step"], metrics)
             bar.set_postfix(updates_per_s=f"{metrics['updates_per_s']:.2f}", model_loss=f"{metrics['model_loss']:.1f}")
             window = {"time": now, "updates": counters["updates"], "metrics": []}
-            counters["next_log"] += cfg.log_every
+            counters["next_log"] = next_multiple(counters["env_step"], cfg.log_every)
         if counters["env_step"] >= counters["next_eval"] or counters["env_step"] >= cfg.steps:
             last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task)
             logger.write("eval", counters["env_step"], last_eval)
             bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
-            counters["next_eval"] += cfg.eval_every
+            counters["next_eval"] = next_multiple(counters["env_step"], cfg.eval_every)
         if counters["env_step"] >= counters["next_checkpoint"] or counters["env_step"] >= cfg.steps:
-            save_checkpoint(checkpoint, agent, cfg, counters)
-            counters["next_checkpoint"] += cfg.checkpoint_every
+            save_checkpoint(checkpoint, agent, cfg, counters, fingerprint)
+            counters["next_checkpoint"] = next_multiple(counters["env_step"], cfg.checkpoint_every)
     bar.close()
     logger.close()
     return last_eval

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 import torch
@@ -32,10 +33,28 @@ def lightning_cli(args: list[str]):
     from data_pipeline.datamodule import ShardDataModule
     from data_pipeline.loader import read_manifest
     from model.module import ConfigError, PretrainModule
+    from model.world_model import MODEL_KEYS
 
     class PretrainCLI(LightningCLI):
         def add_arguments_to_parser(self, parser) -> None:
             parser.link_arguments("data.k_max", "model.k_max")  # one K_max for sampling and validation
+
+        def _parse_ckpt_path(self) -> None:
+            """LightningCLI replaces the model settings with the checkpoint's when resuming; refuse a checkpoint
+            whose model size differs from the one asked for instead of silently training another size."""
+            config = self.config.get(self.config.get("subcommand") or "", {})
+            ckpt_path = config.get("ckpt_path") if config else None
+            if ckpt_path and Path(ckpt_path).is_file():
+                saved = torch.load(ckpt_path, weights_only=True, map_location="cpu").get("hyper_parameters", {})
+                asked = config["model"]
+                different = [f"{key}: checkpoint {saved[key]!r} vs this run {asked[key]!r}"
+                             for key in MODEL_KEYS if key in saved and saved[key] != asked[key]]
+                if different:
+                    raise ConfigError(
+                        f"{ckpt_path} was trained with a different model size ({', '.join(different)}); resume with "
+                        "the checkpoint's own settings (its config.yaml sits in the run's lightning_logs/version_N/)"
+                    )
+            super()._parse_ckpt_path()
 
         def before_instantiate_classes(self) -> None:
             config = self.config[self.subcommand]
@@ -55,6 +74,8 @@ def lightning_cli(args: list[str]):
                 if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
                     callback.dirpath = str(Path(self.trainer.default_root_dir) / "checkpoints")
 
+    # `hauwm` passes its own argv on purpose; Lightning would warn that sys.argv differs
+    warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
     return PretrainCLI(
         PretrainModule,
         ShardDataModule,

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-import torch._dynamo  # noqa: F401  load triton before any test opens an OSMesa context (it segfaults after)
 
 from finetune.config import FinetuneConfig
 from model.export import export_frozen

@@ -63,6 +63,15 @@ def test_spaces_reset_step_and_time_limit(name, envs_to_close):
     assert env.step(env.action_space.sample())[3] is False
 
 
+@pytest.mark.filterwarnings("ignore:.*(render fps|alternative render modes)")
+def test_gymnasium_env_checker_passes(envs_to_close):
+    from gymnasium.utils.env_checker import check_env
+
+    env = make_env("dmc_cartpole_swingup", seed=0, fast_render=True, time_limit=20)
+    envs_to_close.append(env)
+    check_env(env)  # spaces, reset(seed=...) determinism, step and render conventions
+
+
 @pytest.mark.parametrize("name", SUITE_TASKS)
 def test_default_episode_length(name, envs_to_close):
     env = make_env(name, seed=0, fast_render=True)

@@ -9,7 +9,9 @@ import torch
 
 from finetune.cli import main
 from finetune.config import FinetuneConfig, load_config
-from finetune.train import CHECKPOINT, load_checkpoint, build_agent, train
+from finetune.train import CHECKPOINT, build_agent, export_fingerprint, load_checkpoint, train
+from model.export import export_frozen
+from model.world_model import WorldModel
 
 # (task, action repeat, agent steps per episode, env-step budget)
 SUITES = [("metaworld_drawer_close", 1, 20, 100), ("robodesk_open_slide", 2, 10, 80)]
@@ -46,7 +48,7 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     # resume: a fresh agent loads exactly the saved weights; the run continues from 200, not from 0
     cfg = load_config("configs/finetune/demo.yaml", dict(hidden=24, units=32, logdir=str(logdir)))
     agent = build_agent(cfg, 1, export_dir, torch.device("cpu"))
-    assert load_checkpoint(logdir / CHECKPOINT, agent, cfg)["env_step"] == 200
+    assert load_checkpoint(logdir / CHECKPOINT, agent, cfg, export_fingerprint(export_dir))["env_step"] == 200
     assert all(torch.equal(agent.trainable_state_dict()[k], v) for k, v in first["agent"].items())
 
     assert main(args + ["--steps", "280"]) == 0
@@ -57,12 +59,17 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert len(list((logdir / "replay").glob("*.npz"))) == 7
 
 
-def test_resume_with_another_task_is_refused(export_dir, tmp_path, capsys):
+def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes, tmp_path, capsys):
     logdir = tmp_path / "run"
-    base = ["--pretrained", str(export_dir)] + tiny_run_settings(logdir, time_limit=10, prefill=20, eval_episodes=1)
-    assert main(["--config", "configs/finetune/demo.yaml", "--steps", "40"] + base) == 0
-    code = main(["--config", "configs/finetune/demo.yaml", "--steps", "40", "--set", "task=dmc_cheetah_run"] + base)
+    settings = tiny_run_settings(logdir, time_limit=10, prefill=20, eval_episodes=1)
+    run = ["--config", "configs/finetune/demo.yaml", "--steps", "40"] + settings
+    assert main(run + ["--pretrained", str(export_dir)]) == 0
+    code = main(run + ["--pretrained", str(export_dir), "--set", "task=dmc_cheetah_run"])
     assert code == 2 and "task='dmc_cartpole_swingup'" in capsys.readouterr().err
+    torch.manual_seed(1)
+    other = export_frozen(WorldModel(**export_sizes), tmp_path / "other-export")
+    assert main(run + ["--pretrained", str(other)]) == 2
+    assert "another --pretrained export" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("task, repeat, episode, steps", SUITES, ids=[s[0].split("_")[0] for s in SUITES])
