@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO := demo-out
-# Headless MuJoCo rendering on a CPU box (docs/finetuning.md); a user's own setting wins.
+# Headless MuJoCo rendering on a CPU box (docs/environments.md); a user's own setting wins.
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= osmesa
 # Debian packages the project needs: OSMesa for headless MuJoCo rendering.

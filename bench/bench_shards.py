@@ -100,7 +100,8 @@ def main() -> None:
               f"largest worker {result['worker_rss_mb']:.0f} MB")
     for encoding in ("jpeg", "raw"):
         result = run_build(data, work / f"shards-{encoding}", 1, None, encoding)
-        print(f"--encoding {encoding}: {result['bytes'] / result['frames']:.0f} bytes per 64×64 frame (tar overhead included)")
+        print(f"--encoding {encoding}: {result['bytes'] / result['frames']:.0f} bytes per 64×64 frame "
+              "(tar overhead included)")
 
 
 if __name__ == "__main__":

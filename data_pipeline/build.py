@@ -104,8 +104,8 @@ def plan_shards(config: BuildConfig) -> list[ShardPlan]:
     plans = []
     for split in config.splits:
         records = load_split(config.annotations, split, labels)[: config.max_clips]
-        step = config.clips_per_shard
-        plans += [ShardPlan(split, i, records[start:start + step]) for i, start in enumerate(range(0, len(records), step))]
+        starts = range(0, len(records), config.clips_per_shard)
+        plans += [ShardPlan(split, i, records[start:start + config.clips_per_shard]) for i, start in enumerate(starts)]
     return plans
 
 
@@ -199,8 +199,9 @@ def assemble_manifest(config: BuildConfig, settings: dict, plans: list[ShardPlan
         split["shards"].append({key: stats[key] for key in ("clips", "frames", "bytes", "sha256", "frame_counts")}
                                | {"name": f"{stats['name']}.tar"})
         errors += stats["errors"]
+    by_reason = dict(sorted(Counter(e["reason"] for e in errors).items()))
     manifest = {"format_version": FORMAT_VERSION, "settings": settings, "splits": splits,
-                "errors": {"total": len(errors), "by_reason": dict(sorted(Counter(e["reason"] for e in errors).items()))}}
+                "errors": {"total": len(errors), "by_reason": by_reason}}
     _write_json_atomic(config.out / ERRORS_FILE, None, lines=errors, writer=config.part)
     _write_json_atomic(config.out / MANIFEST_FILE, manifest, writer=config.part)
     return manifest
@@ -268,7 +269,8 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
         log(f"wrote {config.out / MANIFEST_FILE} and {config.out / ERRORS_FILE}")
     rate = len(failed) / max(total, 1)
     if rate > config.max_error_rate:
+        where = config.out / ERRORS_FILE if manifest else "the shards' .stats.json (all parts unfinished)"
         log(f"error: {len(failed)} of {total} clips failed ({rate:.1%}), more than --max-error-rate "
-            f"{config.max_error_rate:g}; see {config.out / ERRORS_FILE}" + ("" if manifest else " (once all parts are done)"))
+            f"{config.max_error_rate:g}; see {where}")
         return manifest, 1
     return manifest, 0

@@ -65,30 +65,30 @@ def _sample_data(args: argparse.Namespace) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-    root = argparse.ArgumentParser(prog="hauwm shards", description="SSv2 → WebDataset shards, and tools around them.")
+    root = argparse.ArgumentParser(prog="hauwm shards", description="SSv2 → WebDataset shards, and tools for them.")
     commands = root.add_subparsers(dest="command", required=True)
 
     build = commands.add_parser("build", help="decode an SSv2 tree into 64×64 WebDataset shards (resumable)")
-    build.add_argument("--annotations", type=Path, required=True, help="directory with something-something-v2-*.json")
-    build.add_argument("--videos", type=Path, required=True, help="directory with <id>.webm")
-    build.add_argument("--split", action="append", choices=SPLITS,
-                       help="split to build; repeatable (default: train and validation)")
-    build.add_argument("--out", type=Path, required=True, help="output directory for shards, manifest, errors")
-    build.add_argument("--size", type=int, default=64, help="frame side in pixels (default 64)")
-    build.add_argument("--resize", choices=RESIZE_MODES, default="squash",
-                       help="squash the whole frame to a square, or crop the centre square first (default squash)")
-    build.add_argument("--encoding", choices=list(ENCODINGS), default="jpeg",
-                       help="frames as per-frame JPEGs (default) or one raw uint8 array per clip")
-    build.add_argument("--quality", type=int, default=90, help="JPEG quality for --encoding jpeg (default 90)")
-    build.add_argument("--clips-per-shard", type=int, default=256, help="label-file entries per shard (default 256)")
-    build.add_argument("--min-frames", type=int, default=8, help="clips with fewer frames are errors (default 8)")
-    build.add_argument("--max-clips", type=int, default=None, help="use only the first N entries of each split")
-    build.add_argument("--workers", type=int, default=1, help="decoder processes (default 1)")
-    build.add_argument("--part", type=int, default=0, help="build only part I of the shards (0-based)")
-    build.add_argument("--num-parts", type=int, default=1, help="number of parts the shards are split into")
-    build.add_argument("--max-error-rate", type=float, default=0.01,
-                       help="exit non-zero when more than this fraction of clips fail (default 0.01)")
-    build.add_argument("--timeout", type=float, default=30.0, help="seconds one clip may take to decode (default 30)")
+    flag = build.add_argument
+    flag("--annotations", metavar="DIR", type=Path, required=True, help="directory with something-something-v2-*.json")
+    flag("--videos", metavar="DIR", type=Path, required=True, help="directory with <id>.webm")
+    flag("--split", action="append", choices=SPLITS, help="split to build; repeatable (default: train and validation)")
+    flag("--out", metavar="DIR", type=Path, required=True, help="output directory for shards, manifest, errors")
+    flag("--size", metavar="N", type=int, default=64, help="frame side in pixels (default 64)")
+    flag("--resize", choices=RESIZE_MODES, default="squash",
+         help="squash the whole frame to a square, or crop the centre square first (default squash)")
+    flag("--encoding", choices=list(ENCODINGS), default="jpeg",
+         help="frames as per-frame JPEGs (default) or one raw uint8 array per clip")
+    flag("--quality", metavar="Q", type=int, default=90, help="JPEG quality for --encoding jpeg (default 90)")
+    flag("--clips-per-shard", metavar="N", type=int, default=256, help="label-file entries per shard (default 256)")
+    flag("--min-frames", metavar="N", type=int, default=8, help="clips with fewer frames are errors (default 8)")
+    flag("--max-clips", metavar="N", type=int, default=None, help="use only the first N entries of each split")
+    flag("--workers", metavar="N", type=int, default=1, help="decoder processes (default 1)")
+    flag("--part", metavar="I", type=int, default=0, help="build only part I of the shards (0-based)")
+    flag("--num-parts", metavar="N", type=int, default=1, help="number of parts the shards are split into")
+    flag("--max-error-rate", metavar="F", type=float, default=0.01,
+         help="exit non-zero when more than this fraction of clips fail (default 0.01)")
+    flag("--timeout", metavar="S", type=float, default=30.0, help="seconds one clip may take to decode (default 30)")
     build.set_defaults(run=_build)
 
     inspect = commands.add_parser("inspect", help="counts per split, frames, bytes, errors by reason")
@@ -97,22 +97,24 @@ def parser() -> argparse.ArgumentParser:
     inspect.set_defaults(run=_inspect)
 
     preview = commands.add_parser("preview", help="a PNG grid of sampled sequences, frames along the rows")
-    preview.add_argument("dir", type=Path, help="shard directory (with manifest.json)")
-    preview.add_argument("--out", type=Path, required=True, help="PNG file to write")
-    preview.add_argument("--split", default=None, help="split to show (default: the first in the manifest)")
-    preview.add_argument("--clips", type=int, default=8, help="rows (default 8)")
-    preview.add_argument("--length", type=int, default=8, help="frames per row, L (default 8)")
-    preview.add_argument("--k-max", type=int, default=5, help="largest gap K_max (default 5)")
-    preview.add_argument("--seed", type=int, default=0)
+    flag = preview.add_argument
+    flag("dir", type=Path, help="shard directory (with manifest.json)")
+    flag("--out", metavar="PNG", type=Path, required=True, help="image file to write")
+    flag("--split", default=None, help="split to show (default: the first in the manifest)")
+    flag("--clips", metavar="N", type=int, default=8, help="rows (default 8)")
+    flag("--length", metavar="L", type=int, default=8, help="frames per row (default 8)")
+    flag("--k-max", metavar="K", type=int, default=5, help="largest gap K_max (default 5)")
+    flag("--seed", metavar="N", type=int, default=0, help="seed of the gap draws (default 0)")
     preview.set_defaults(run=_preview)
 
     sample = commands.add_parser("sample-data", help="write the built-in stochastic-scene dataset in SSv2's format")
-    sample.add_argument("--out", type=Path, required=True, help="output directory (annotations/, videos/)")
-    sample.add_argument("--clips", type=int, default=96, help="number of good clips over all splits (default 96)")
-    sample.add_argument("--with-broken", action="store_true",
-                        help="add corrupt, truncated, empty, missing, too-short and non-video entries")
-    sample.add_argument("--seed", type=int, default=0)
-    sample.add_argument("--workers", type=int, default=2, help="processes rendering and encoding clips (default 2)")
+    flag = sample.add_argument
+    flag("--out", metavar="DIR", type=Path, required=True, help="output directory (annotations/, videos/)")
+    flag("--clips", metavar="N", type=int, default=96, help="good clips over all splits (default 96)")
+    flag("--with-broken", action="store_true",
+         help="add corrupt, truncated, empty, missing, too-short and non-video entries")
+    flag("--seed", metavar="N", type=int, default=0, help="seed of the scenes (default 0)")
+    flag("--workers", metavar="N", type=int, default=2, help="processes rendering and encoding clips (default 2)")
     sample.set_defaults(run=_sample_data)
     return root
 

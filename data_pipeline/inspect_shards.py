@@ -55,7 +55,8 @@ def check_shard(path: Path, expected: dict) -> list[str]:
             frames_extension = next(e for e in files if e != "json")
             stored = len(decode_frames(files[frames_extension], frames_extension))
             if stored != metadata["num_frames"]:
-                problems.append(f"{path.name}: clip {key} stores {stored} frames, its JSON says {metadata['num_frames']}")
+                problems.append(f"{path.name}: clip {key} stores {stored} frames, "
+                                f"its JSON says {metadata['num_frames']}")
             frames += stored
     except (tarfile.TarError, KeyError, StopIteration, ValueError) as error:
         return problems + [f"{path.name}: unreadable ({type(error).__name__}: {error})"]

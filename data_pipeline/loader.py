@@ -80,9 +80,9 @@ def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -
 def collate(samples: list[dict]) -> dict:
     """Sequences → the batch of docs/architecture.md §2."""
     indices = np.stack([s["indices"] for s in samples])  # [B, L]
+    frames = np.stack([s["frames"] for s in samples])  # [B, L, H, W, 3]; numpy transposes uint8 faster than torch
     return {
-        "frames": torch.from_numpy(np.stack([s["frames"] for s in samples])).permute(0, 1, 4, 2, 3).contiguous(),
-        # uint8 [B, L, 3, H, W]
+        "frames": torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 1, 4, 2, 3))),  # uint8 [B, L, 3, H, W]
         "gaps": torch.from_numpy(gaps_of(indices)),  # int64 [B, L], gaps[:, 0] == 0
         "indices": torch.from_numpy(indices),  # int64 [B, L]
         "num_frames": torch.tensor([s["num_frames"] for s in samples], dtype=torch.int64),  # [B]

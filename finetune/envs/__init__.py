@@ -18,7 +18,15 @@ Importing this package sets up headless rendering before anything imports mujoco
 
 import importlib.util
 import os
+import sys
+import warnings
 
+if "MUJOCO_GL" not in os.environ and "mujoco" in sys.modules:
+    warnings.warn(
+        "mujoco was imported before finetune.envs with MUJOCO_GL unset, so it chose its OpenGL platform "
+        "already and headless rendering may fail; set MUJOCO_GL=osmesa (or egl) before starting Python",
+        stacklevel=2,
+    )
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 if os.environ["MUJOCO_GL"] in ("osmesa", "egl"):  # PyOpenGL (used by mujoco's Python renderer) must agree
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])

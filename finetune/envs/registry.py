@@ -73,6 +73,8 @@ def make_env(
         raise ValueError(
             f"unknown environment {name!r}. Valid {name.split('_', 1)[0]} names: {', '.join(sorted(tasks))}"
         )
-    action_repeat = action_repeat or suite.DEFAULT_ACTION_REPEAT
-    time_limit = time_limit or max(1, suite.EPISODE_SIM_STEPS // action_repeat)
+    if action_repeat is None:
+        action_repeat = suite.DEFAULT_ACTION_REPEAT
+    if time_limit is None:
+        time_limit = max(1, suite.EPISODE_SIM_STEPS // max(1, action_repeat))
     return suite.ENV_CLASS(name, tasks[name], seed, image_size, action_repeat, time_limit, fast_render)

@@ -1,10 +1,10 @@
 """What `fast_render=True` turns off, shared by every suite.
 
 On a CPU (OSMesa or Mesa's software EGL) rendering costs far more than physics. Three things make
-most of that cost and barely change a 64x64 frame: 4x multisample anti-aliasing of the offscreen
-buffer, the shadow-map pass, and the planar-reflection pass. Fast rendering turns all three off
-(measured in `bench/bench_envs.py`: 6-14x more frames per second, mean absolute pixel change of
-about 1-2 grey levels out of 255).
+most of that cost: 4x multisample anti-aliasing of the offscreen buffer, the shadow passes and the
+planar-reflection pass. Fast rendering turns all three off: 8-20x more frames per second in
+`bench/bench_envs.py`, for a mean change of a 64x64 frame of 1-7 grey levels out of 255 in DMC, 11 in
+Meta-World (the table's shadow) and 39 in RoboDesk (a darker desk); see docs/environments.md.
 
 Multisampling is a property of the OpenGL context, so `disable_multisampling` must run before the
 first render of a model; the scene flags can be switched per render.

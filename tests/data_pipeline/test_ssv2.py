@@ -54,7 +54,8 @@ def test_test_split_has_no_labels_and_needs_no_label_file(annotations):
 
 
 def test_unknown_template_and_missing_file_give_clear_errors(annotations):
-    write(annotations, "validation", [{"id": "9", "label": "x", "template": "Juggling [something]", "placeholders": []}])
+    entry = {"id": "9", "label": "x", "template": "Juggling [something]", "placeholders": []}
+    write(annotations, "validation", [entry])
     with pytest.raises(AnnotationError, match="Juggling something.*labels.json"):
         load_split(annotations, "validation")
     (annotations / "something-something-v2-train.json").unlink()

@@ -16,7 +16,7 @@ from model.export import ExportError, FrozenWorldModel, load_frozen
 from model.module import PretrainModule
 from model.rssm import RSSMState
 
-from conftest import RUN_STEPS, fit
+from conftest import RUN_STEPS, fit  # noqa: I001 (tests/model/conftest.py)
 
 
 def scalars(run, tag: str) -> list[float]:

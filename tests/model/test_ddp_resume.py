@@ -1,0 +1,74 @@
+"""Distributed and resumed training: DDP over gloo with 2 CPU processes, and exact resume from a checkpoint."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import lightning as L
+import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
+
+from data_pipeline import SetEpoch, ShardDataModule
+from model.module import PretrainModule
+
+from conftest import REPO, TINY_CONFIG  # noqa: I001 (tests/model/conftest.py)
+
+
+def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shards, tmp_path):
+    reports = tmp_path / "reports"
+    extra = tmp_path / "callbacks.yaml"
+    extra.write_text(
+        "trainer:\n  callbacks:\n    - class_path: data_pipeline.SetEpoch\n"
+        f"    - class_path: rank_report.RankReport\n      init_args:\n        out_dir: {reports}\n"
+    )
+    command = [sys.executable, "-m", "model.cli", "fit", "--config", str(TINY_CONFIG), "--config", str(extra),
+               "--data.shards", str(built_shards), "--data.val_split", "train", "--data.batch_size", "2",
+               "--data.seq_len", "6", "--data.num_workers", "0", "--trainer.limit_val_batches", "0",
+               "--trainer.devices", "2", "--trainer.strategy", "ddp", "--trainer.max_steps", "5",
+               "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", str(tmp_path / "run")]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), str(REPO)]),
+           "OMP_NUM_THREADS": "1", "PL_DISABLE_FORK": "1"}
+    done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=400)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rank0, rank1 = (json.loads((reports / f"rank{r}.json").read_text()) for r in (0, 1))
+    assert rank0["world_size"] == rank1["world_size"] == 2
+    assert rank0["global_step"] == rank1["global_step"] == 5
+    assert rank0["batches"] == rank1["batches"] == 5
+    assert rank0["weights_sha256"] == rank1["weights_sha256"]
+    assert rank0["lambda"] == rank1["lambda"] != 1.0  # λ moved, identically on both ranks
+
+
+class LossRecorder(L.Callback):
+    def __init__(self):
+        self.losses: dict[int, float] = {}
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.losses[trainer.global_step] = float(trainer.callback_metrics["train/loss"])
+
+
+def train(shards: Path, root: Path, sizes: dict, max_steps: int, ckpt_path: str | None = None):
+    L.seed_everything(0)
+    module = PretrainModule(**sizes, k_max=3, lambda_lr=0.01)
+    data = ShardDataModule(str(shards), batch_size=3, seq_len=6, k_max=3, num_workers=0, val_batches=1)
+    recorder = LossRecorder()
+    checkpoint = ModelCheckpoint(dirpath=root, save_last=True, save_on_train_epoch_end=True)
+    trainer = L.Trainer(max_steps=max_steps, accelerator="cpu", logger=False, enable_progress_bar=False,
+                        enable_model_summary=False, limit_val_batches=0, callbacks=[SetEpoch(), recorder, checkpoint])
+    trainer.fit(module, datamodule=data, ckpt_path=ckpt_path)
+    return module, recorder.losses
+
+
+def test_resuming_gives_the_same_next_losses_as_an_uninterrupted_run(built_shards, tmp_path, small_sizes):
+    # 18 train clips / batch 3 = 6 steps an epoch: stop after one epoch, resume for a second
+    full_module, full = train(built_shards, tmp_path / "full", small_sizes, max_steps=12)
+    train(built_shards, tmp_path / "first", small_sizes, max_steps=6)
+    resumed_module, resumed = train(built_shards, tmp_path / "resumed", small_sizes, max_steps=12,
+                                    ckpt_path=str(tmp_path / "first" / "last.ckpt"))
+    assert sorted(resumed) == list(range(7, 13))
+    assert [resumed[step] for step in range(7, 13)] == [full[step] for step in range(7, 13)]
+    full_state, resumed_state = full_module.state_dict(), resumed_module.state_dict()
+    assert all(torch.equal(full_state[name], resumed_state[name]) for name in full_state)  # weights, λ, counters
