@@ -115,14 +115,32 @@ def check_settings(out: Path, settings: dict, part: int) -> None:
     if path.is_file():
         previous = json.loads(path.read_text())
         if previous != settings:
-            changed = sorted(key for key in settings.keys() | previous.keys() if settings.get(key) != previous.get(key))
-            details = "; ".join(f"{key}: was {previous.get(key)!r}, now {settings.get(key)!r}" for key in changed)
+            details = "; ".join(f"{key}: was {was}, now {now}" for key, was, now in _differences(previous, settings))
             raise BuildError(f"{out} holds shards built with other settings ({details}). Re-run with the "
                              f"original settings to resume, or build into a new --out directory.")
     elif any(out.glob("*.tar")):
         raise BuildError(f"{out} holds shards but no {SETTINGS_FILE}; build into a new --out directory.")
     else:
         _write_json_atomic(path, settings, writer=part)
+
+
+def _differences(previous: dict, current: dict, prefix: str = "") -> list[tuple[str, str, str]]:
+    """(key, old, new) for every setting that differs; nested dicts (the label files' hashes) key by key."""
+    differences = []
+    for key in sorted(previous.keys() | current.keys()):
+        was, now = previous.get(key), current.get(key)
+        if isinstance(was, dict) and isinstance(now, dict):
+            differences += _differences(was, now, prefix=f"{prefix}{key}.")
+        elif was != now:
+            differences.append((prefix + key, _show(previous, key), _show(current, key)))
+    return differences
+
+
+def _show(settings: dict, key: str) -> str:
+    if key not in settings:
+        return "absent"
+    text = repr(settings[key])
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def settings_digest(settings: dict) -> str:
@@ -255,8 +273,9 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
     total = sum(len(stats["planned"]) for stats in part_stats)
     failed = [e for stats in part_stats for e in stats["errors"]]
     new_frames = sum(stats["frames"] for stats in built)
-    log(f"built {len(built)} shards in {elapsed:.1f} s: {len(valid) / max(elapsed, 1e-9):.1f} clips/s, "
-        f"{new_frames / max(elapsed, 1e-9):.0f} frames/s")
+    if built:
+        log(f"built {len(built)} shards in {elapsed:.1f} s: {len(valid) / elapsed:.1f} clips/s, "
+            f"{new_frames / elapsed:.0f} frames/s")
     log(f"part {config.part}: {total - len(failed)} clips in shards, {len(failed)} failed "
         f"({', '.join(f'{r}: {n}' for r, n in sorted(Counter(e['reason'] for e in failed).items())) or 'none'})")
     manifest = assemble_manifest(config, settings, plans, digest)

@@ -1,5 +1,6 @@
 """`hauwm shards build`: broken entries, faithful frames, reproducibility, resume after SIGKILL, refusals."""
 
+import contextlib
 import json
 import os
 import signal
@@ -142,7 +143,8 @@ def test_resume_after_sigkill_is_byte_identical(sample_ssv2, clean_annotations, 
             if kill_after_stats and out.is_dir() and len(list(out.glob("*.stats.json"))) >= kill_after_stats:
                 break
             time.sleep(0.002)
-        os.killpg(process.pid, signal.SIGKILL)  # the build and its decoder processes
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)  # the build and its decoder processes
         process.wait()
         assert not (out / "manifest.json").exists(), "the build finished before it could be killed"
         finished = subprocess.run(build_cli(*common, "--out", out, "--workers", "2"), capture_output=True, text=True)
@@ -196,3 +198,21 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
     config.annotations, config.videos = sample_ssv2 / "annotations", tmp_path / "no-videos"
     with pytest.raises(BuildError, match="--videos .*no-videos: not a directory"):
         build(config, log=quiet)
+
+
+@pytest.mark.slow
+def test_repeated_random_sigkills_with_broken_entries_still_end_byte_identical(sample_ssv2, tmp_path):
+    common = ["--annotations", sample_ssv2 / "annotations", "--videos", sample_ssv2 / "videos", "--split", "train",
+              "--split", "validation", "--split", "test", "--clips-per-shard", "3", "--max-error-rate", "0.5"]
+    reference = tmp_path / "reference"
+    subprocess.run(build_cli(*common, "--out", reference, "--workers", "1"), check=True, capture_output=True)
+    out, rng = tmp_path / "killed", np.random.default_rng(0)
+    for _ in range(6):  # kill at random moments, several times over, with 2 decoder processes
+        process = subprocess.Popen(build_cli(*common, "--out", out, "--workers", "2"), start_new_session=True,
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(rng.uniform(0.05, 1.0))
+        with contextlib.suppress(ProcessLookupError):  # it may have finished already
+            os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+    subprocess.run(build_cli(*common, "--out", out, "--workers", "2"), check=True, capture_output=True)
+    assert directory_bytes(out) == directory_bytes(reference)
