@@ -3,6 +3,7 @@
     python bench/bench_learning.py                                   # scratch agent, cartpole swing-up, 25 min
     python bench/bench_learning.py --agent hauwm --pretrained DIR --minutes 60
     python bench/bench_learning.py --minutes 2 --logdir /tmp/quick   # a smoke run
+    python bench/bench_learning.py --set model_lr=6e-4 --set actor_lr=2e-4 --set critic_lr=2e-4
 
 Runs `finetune.train.train` in chunks of `--chunk` env steps (each chunk resumes the last from its
 checkpoint) until the wall-clock budget is spent, with small networks that fit a CPU. Then it plays
@@ -27,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from finetune.config import FinetuneConfig  # noqa: E402
+from finetune.config import load_config, parse_override  # noqa: E402
 from finetune.train import train  # noqa: E402
 
 # small enough for a shared CPU: ~1 update/s on one loaded core
@@ -63,13 +64,16 @@ def main() -> None:
     parser.add_argument("--chunk", type=int, default=2000, help="env steps per resumed chunk")
     parser.add_argument("--logdir", default="runs/bench_learning")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting")
     args = parser.parse_args()
 
-    cfg = FinetuneConfig(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir, steps=0, **CPU_SETTINGS)
+    settings = {**CPU_SETTINGS, **dict(parse_override(text) for text in args.set)}
+    cfg = load_config(None, dict(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir, steps=0, **settings))
     if args.agent == "hauwm":  # the new stream takes the export's sizes
         cfg = dataclasses.replace(cfg, deter=None, stoch=None)
     print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs (shared), torch {torch.__version__}, 1 thread")
-    print(f"task {args.task}, agent {args.agent}, budget {args.minutes} min, settings {CPU_SETTINGS}", flush=True)
+    print(f"task {args.task}, agent {args.agent}, budget {args.minutes} min, "
+          f"settings { {key: getattr(cfg, key) for key in settings} }", flush=True)
     start = time.perf_counter()
     while time.perf_counter() - start < args.minutes * 60:
         cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)

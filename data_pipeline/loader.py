@@ -2,8 +2,7 @@
 
 Per epoch, the shard list is shuffled globally with `seed + epoch`, then split by node (rank) and by
 DataLoader worker (`webdataset.split_by_node`, `split_by_worker`). Each worker cycles over its shards
-pass after pass (tar → samples → shuffle buffer within the pass → L sampled frames decoded → batches)
-and stops after exactly
+pass after pass and stops after exactly
 `batches_per_worker` batches, computed up front from the manifest's per-shard frame counts:
 
     batches_per_worker = ⌊ clips with at least L frames / (world_size · workers · batch_size) ⌋
@@ -12,6 +11,12 @@ so every rank runs the same number of steps (DDP would hang otherwise) however u
 A worker whose shards hold fewer clips than its share sees some clips twice; one with more sees some
 not at all this epoch (a new shuffle next epoch). Lightning does not call `set_epoch` on an
 IterableDataset: `data_pipeline.SetEpoch` (a callback) does it, before the workers are started.
+
+The stages of one worker, a webdataset pipeline (the per-sequence cost at L = 16 is in bench/README.md):
+
+    shard URLs → `shard_samples` (tar → samples) → shuffle buffer within the pass
+      → `to_sequence` (JSON, L frame indices; too-short clips dropped) → groups of batch_size
+      → `collate` (only the L sampled frames of each clip decoded, straight into the batch array)
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from torch.utils.data import DataLoader, IterableDataset
 from webdataset.utils import pytorch_worker_info
 
 from .sampling import gaps_of, sample_indices
-from .shard_format import decode_frames
+from .shard_format import decode_frames, read_samples
 
 MANIFEST_FILE = "manifest.json"
 BUILD_HINT = ("build it with `hauwm shards build --annotations DIR --videos DIR --out {dir}` "
@@ -77,29 +82,45 @@ def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -
     return ShardSet(split, urls, counts)
 
 
-def collate(samples: list[dict]) -> dict:
-    """Sequences → the batch of docs/architecture.md §2."""
-    indices = np.stack([s["indices"] for s in samples])  # [B, L]
-    frames = np.stack([s["frames"] for s in samples])  # [B, L, H, W, 3]; numpy transposes uint8 faster than torch
-    return {
-        "frames": torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 1, 4, 2, 3))),  # uint8 [B, L, 3, H, W]
-        "gaps": torch.from_numpy(gaps_of(indices)),  # int64 [B, L], gaps[:, 0] == 0
-        "indices": torch.from_numpy(indices),  # int64 [B, L]
-        "num_frames": torch.tensor([s["num_frames"] for s in samples], dtype=torch.int64),  # [B]
-        "label": torch.tensor([s["label"] for s in samples], dtype=torch.int64),  # [B]
-        "id": [s["id"] for s in samples],
-    }
+def shard_samples(sources: Iterator[dict]) -> Iterator[dict]:
+    """webdataset stage: `{"url": ...}` (a path or a `pipe:` command, opened by webdataset's `gopen`) → the
+    shard's tar samples `{"__key__", "json", "jpgs" | "npy"}`, in clip order."""
+    for source in sources:
+        stream = wds.gopen(source["url"])
+        yield from read_samples(stream, source["url"])
+        stream.read()  # the tar's trailing zero blocks: a `pipe:` command finishes before it is closed
+        stream.close()
 
 
 def to_sequence(sample: dict, seq_len: int, k_max: int, rng: np.random.Generator) -> dict | None:
-    """A tar sample → L sampled frames `uint8 [L, H, W, 3]` and their facts; None for a too-short clip."""
+    """A tar sample → its sequence (the L frame indices, the facts, the still-encoded frames member);
+    None for a clip shorter than L frames."""
     metadata = json.loads(sample["json"])
-    indices = sample_indices(metadata["num_frames"], seq_len, k_max, rng)
+    indices = sample_indices(metadata["num_frames"], seq_len, k_max, rng)  # int64 [L]
     if indices is None:
         return None
     extension = "jpgs" if "jpgs" in sample else "npy"
-    return {"frames": decode_frames(sample[extension], extension, indices), "indices": indices,
+    return {"frames_member": sample[extension], "extension": extension, "indices": indices,
             "num_frames": metadata["num_frames"], "label": metadata["class_index"], "id": metadata["id"]}
+
+
+def collate(sequences: list[dict]) -> dict:
+    """Sequences → the batch of docs/architecture.md §2, decoding only the L sampled frames of each clip."""
+    height, width = decode_frames(sequences[0]["frames_member"], sequences[0]["extension"], [0]).shape[1:3]
+    frames = torch.empty((len(sequences), len(sequences[0]["indices"]), 3, height, width), dtype=torch.uint8)
+    for slot, sequence in zip(frames.numpy(), sequences):  # slot: [L, 3, H, W]
+        # each frame goes from its decoder's [H, W, 3] into the [3, H, W] layout while still in the cache
+        decode_frames(sequence["frames_member"], sequence["extension"], sequence["indices"],
+                      out=slot.transpose(0, 2, 3, 1))
+    indices = np.stack([s["indices"] for s in sequences])  # [B, L]
+    return {
+        "frames": frames,  # uint8 [B, L, 3, H, W]
+        "gaps": torch.from_numpy(gaps_of(indices)),  # int64 [B, L], gaps[:, 0] == 0
+        "indices": torch.from_numpy(indices),  # int64 [B, L]
+        "num_frames": torch.tensor([s["num_frames"] for s in sequences], dtype=torch.int64),  # [B]
+        "label": torch.tensor([s["label"] for s in sequences], dtype=torch.int64),  # [B]
+        "id": [s["id"] for s in sequences],
+    }
 
 
 class SequenceDataset(IterableDataset):
@@ -151,7 +172,7 @@ class SequenceDataset(IterableDataset):
         before every clip of the stream has come once."""
         while True:
             stages = [wds.SimpleShardList([urls[i] for i in rng.permutation(len(urls))] if self.shuffle else urls),
-                      wds.tarfile_to_samples()]
+                      shard_samples]
             if self.shuffle and self.shuffle_buffer > 1:
                 stages.append(wds.shuffle(self.shuffle_buffer, initial=self.shuffle_buffer,
                                           rng=random.Random(int(rng.integers(2**63)))))

@@ -145,6 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ExportError, LoaderError) as err:
         print(f"hauwm pretrain {command}: error: {err}", file=sys.stderr)
         return 2
+    except SystemExit as done:  # --help, --print_config, or a flag the parser refused (it printed why)
+        return done.code if isinstance(done.code, int) else 2
     print(f"hauwm pretrain: unknown command {command!r}\nusage:\n{USAGE}", file=sys.stderr)
     return 2
 

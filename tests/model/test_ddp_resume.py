@@ -12,7 +12,6 @@ import lightning as L
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from data_pipeline import SetEpoch, ShardDataModule
 from model.module import PretrainModule
 
 from conftest import REPO, TINY_CONFIG  # noqa: I001 (tests/model/conftest.py)
@@ -42,6 +41,29 @@ def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shard
     assert rank0["lambda"] == rank1["lambda"] != 1.0  # λ moved, identically on both ranks
 
 
+class ResumableBatches:
+    """Fixed batches as a resumable loader (`state_dict` / `load_state_dict`): Lightning saves its position in
+    the checkpoint and restores it, so this test isolates what the module must restore itself."""
+
+    def __init__(self, batches: list[dict]):
+        self.batches, self.position, self.skip = batches, 0, 0
+
+    def __len__(self) -> int:
+        return len(self.batches)
+
+    def __iter__(self):
+        start, self.skip = self.skip, 0
+        for index in range(start, len(self.batches)):
+            self.position = index + 1  # batches handed out this epoch
+            yield self.batches[index]
+
+    def state_dict(self) -> dict:
+        return {"position": self.position}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.skip = state["position"]
+
+
 class LossRecorder(L.Callback):
     def __init__(self):
         self.losses: dict[int, float] = {}
@@ -50,25 +72,25 @@ class LossRecorder(L.Callback):
         self.losses[trainer.global_step] = float(trainer.callback_metrics["train/loss"])
 
 
-def train(shards: Path, root: Path, sizes: dict, max_steps: int, ckpt_path: str | None = None):
+def train(batches: list[dict], root: Path, sizes: dict, max_steps: int, ckpt_path: str | None = None):
     L.seed_everything(0)
-    module = PretrainModule(**sizes, k_max=3, lambda_lr=0.01)
-    data = ShardDataModule(str(shards), batch_size=3, seq_len=6, k_max=3, num_workers=0, val_batches=1)
+    module = PretrainModule(**sizes, k_max=5, lambda_lr=0.01)
     recorder = LossRecorder()
-    checkpoint = ModelCheckpoint(dirpath=root, save_last=True, save_on_train_epoch_end=True)
+    checkpoint = ModelCheckpoint(dirpath=root, save_last=True, every_n_train_steps=4)
     trainer = L.Trainer(max_steps=max_steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, limit_val_batches=0, callbacks=[SetEpoch(), recorder, checkpoint])
-    trainer.fit(module, datamodule=data, ckpt_path=ckpt_path)
+                        enable_model_summary=False, callbacks=[recorder, checkpoint])
+    trainer.fit(module, train_dataloaders=ResumableBatches(batches), ckpt_path=ckpt_path)
     return module, recorder.losses
 
 
-def test_resuming_gives_the_same_next_losses_as_an_uninterrupted_run(built_shards, tmp_path, small_sizes):
-    # 18 train clips / batch 3 = 6 steps an epoch: stop after one epoch, resume for a second
-    full_module, full = train(built_shards, tmp_path / "full", small_sizes, max_steps=12)
-    train(built_shards, tmp_path / "first", small_sizes, max_steps=6)
-    resumed_module, resumed = train(built_shards, tmp_path / "resumed", small_sizes, max_steps=12,
+def test_resuming_gives_the_same_next_losses_as_an_uninterrupted_run(tmp_path, small_sizes, batch_factory):
+    batches = [batch_factory(batch_size=2, length=6, seed=i) for i in range(6)]  # 6 steps an epoch
+    full_module, full = train(batches, tmp_path / "full", small_sizes, max_steps=10)
+    train(batches, tmp_path / "first", small_sizes, max_steps=4)  # stops mid-epoch, checkpoint at step 4
+    resumed_module, resumed = train(batches, tmp_path / "resumed", small_sizes, max_steps=10,
                                     ckpt_path=str(tmp_path / "first" / "last.ckpt"))
-    assert sorted(resumed) == list(range(7, 13))
-    assert [resumed[step] for step in range(7, 13)] == [full[step] for step in range(7, 13)]
+    assert sorted(resumed) == list(range(5, 11))  # the rest of epoch 0 and 4 steps of epoch 1
+    assert [resumed[step] for step in range(5, 11)] == [full[step] for step in range(5, 11)]
     full_state, resumed_state = full_module.state_dict(), resumed_module.state_dict()
     assert all(torch.equal(full_state[name], resumed_state[name]) for name in full_state)  # weights, λ, counters
+    assert full_module.hcu_weight() != 1.0
