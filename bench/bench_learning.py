@@ -55,6 +55,27 @@ def random_returns(task: str, action_repeat: int, episodes: int, seed: int = 123
     return returns
 
 
+def plot_curves(curves: dict[str, list[tuple[int, float]]], baseline: list[float], title: str, path: Path) -> None:
+    """Eval return against env steps, one line per run, and the random policy's mean ± std."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for label, points in curves.items():
+        ax.plot(*zip(*points), marker="o", label=label)
+    mean, std = np.mean(baseline), np.std(baseline)
+    ax.axhline(mean, color="gray", linestyle="--", label="random policy (mean ± std)")
+    ax.axhspan(mean - std, mean + std, color="gray", alpha=0.15)
+    ax.set_xlabel("env steps (frames)")
+    ax.set_ylabel("episode return")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="dmc_cartpole_swingup")
@@ -88,24 +109,14 @@ def main() -> None:
     for step, ret in evals:
         print(f"{step:>10} {ret:>12.1f}")
     best = max(ret for _, ret in evals)
+    minutes = (time.perf_counter() - start) / 60
     print(f"best eval return {best:.1f} = {best / max(np.mean(baseline), 1e-9):.1f}× the random policy's; "
-          f"{(time.perf_counter() - start) / 60:.1f} min in all")
+          f"{minutes:.1f} min in all")
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.plot(*zip(*evals), marker="o", label=f"{args.agent} agent (eval, {cfg.eval_episodes} episodes)")
-    ax.axhline(np.mean(baseline), color="gray", linestyle="--", label="random policy")
-    ax.set_xlabel("env steps (frames)")
-    ax.set_ylabel("episode return")
-    ax.set_title(f"{args.task}, CPU, {args.minutes:g} min")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(Path(args.logdir) / "learning_curve.png", dpi=120)
-    print(f"curve: {Path(args.logdir) / 'learning_curve.png'}")
+    path = Path(args.logdir) / "learning_curve.png"
+    plot_curves({f"{args.agent} agent (eval, {cfg.eval_episodes} episodes)": evals}, baseline,
+                f"{args.task}, shared CPU, {minutes:.0f} min", path)
+    print(f"curve: {path}")
 
 
 if __name__ == "__main__":

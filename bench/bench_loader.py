@@ -1,12 +1,13 @@
 """Loader throughput: sequences/s per core at L = 16 (aim: at least 1,000), in-process and with 2 workers.
 
-Builds shards from the built-in sample data (or uses `--shards DIR`), then times `SequenceDataset`
-(tar reading, shuffle buffer, gap sampling, decoding only the L sampled JPEG frames, collation) in the
-main process (torch and OpenCV limited to one thread) and through a DataLoader with 2 workers. Reports
-wall-clock rates and rates per CPU second (CPU time of the process and its workers), which stay
-meaningful on a machine shared with other jobs.
+Builds shards from the built-in sample data (`--encoding jpeg` or `raw`; or uses `--shards DIR`), then
+times `SequenceDataset` (tar reading, shuffle buffer, gap sampling, decoding only the L sampled frames,
+collation into the batch) in the main process (torch and OpenCV limited to one thread) and through a
+DataLoader with 2 workers. Reports wall-clock rates and rates per CPU second (CPU time of the process and
+its workers), which stay meaningful on a machine shared with other jobs.
 
-    python bench/bench_loader.py [--shards DIR] [--seq-len 16] [--batch-size 32] [--batches 150]
+    python bench/bench_loader.py [--shards DIR | --encoding jpeg|raw] [--seq-len 16] [--batch-size 32]
+                                 [--batches 150]
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import cv2  # noqa: E402
 import torch  # noqa: E402
 
 from data_pipeline.build import BuildConfig, build  # noqa: E402
-from data_pipeline.loader import SequenceDataset, make_dataloader, shard_set  # noqa: E402
+from data_pipeline.loader import SequenceDataset, make_dataloader, read_manifest, shard_set  # noqa: E402
 from data_pipeline.sample_data import make_sample_data  # noqa: E402
 
 
@@ -54,6 +55,7 @@ def time_batches(batches) -> tuple[float, float, int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shards", type=Path, default=None, help="a shard directory (default: build sample shards)")
+    parser.add_argument("--encoding", choices=["jpeg", "raw"], default="jpeg", help="of the built sample shards")
     parser.add_argument("--seq-len", type=int, default=16)
     parser.add_argument("--k-max", type=int, default=5)
     parser.add_argument("--batch-size", type=int, default=32)
@@ -67,10 +69,12 @@ def main() -> None:
         make_sample_data(work / "ssv2", 64, workers=2)
         shards = work / "shards"
         build(BuildConfig(annotations=work / "ssv2" / "annotations", videos=work / "ssv2" / "videos", out=shards,
-                          splits=["train"], clips_per_shard=8, workers=2), log=lambda message: None)
+                          splits=["train"], clips_per_shard=8, encoding=args.encoding, workers=2),
+              log=lambda message: None)
     print(f"machine: {machine()}, load average {os.getloadavg()[0]:.1f} at the start")
+    encoding = read_manifest(shards)["settings"]["encoding"]
     print(f"settings: L={args.seq_len}, K_max={args.k_max}, batch {args.batch_size}, shuffle buffer 256, "
-          f"shards {shards}")
+          f"{encoding} shards {shards}")
     for workers in (0, 2):
         dataset = SequenceDataset(shard_set(shards, "train"), batch_size=args.batch_size, seq_len=args.seq_len,
                                   k_max=args.k_max, num_workers=workers,

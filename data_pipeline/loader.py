@@ -109,7 +109,7 @@ def collate(sequences: list[dict]) -> dict:
     height, width = decode_frames(sequences[0]["frames_member"], sequences[0]["extension"], [0]).shape[1:3]
     frames = torch.empty((len(sequences), len(sequences[0]["indices"]), 3, height, width), dtype=torch.uint8)
     for slot, sequence in zip(frames.numpy(), sequences):  # slot: [L, 3, H, W]
-        # each frame goes from its decoder's [H, W, 3] into the [3, H, W] layout while still in the cache
+        # the decoded [L, H, W, 3] frames are written transposed straight into their slot (no second pass)
         decode_frames(sequence["frames_member"], sequence["extension"], sequence["indices"],
                       out=slot.transpose(0, 2, 3, 1))
     indices = np.stack([s["indices"] for s in sequences])  # [B, L]

@@ -12,8 +12,9 @@ A shard `{split}-{NNNNNN}.tar` holds, per clip, two members named by the SSv2 id
 
 Frames are RGB. Tars are written byte-for-byte reproducibly: USTAR format, members in clip order,
 mtime 0, owner 0:0 without names, mode 0444. `read_samples` reads them back as a stream, a clip at a
-time, parsing the 512-byte USTAR headers itself: about 12 µs per clip against 140 µs through `tarfile`'s
-stream mode (webdataset's reader), which matters at a thousand clips per second.
+time, with `tarfile`'s stream mode (about 90 µs per clip; webdataset's own reader adds about 50 µs more),
+and JPEG frames are decoded with simplejpeg (libjpeg-turbo; about 25 µs per 64×64 frame against about
+40 µs through OpenCV, the loader's main cost at a thousand sequences per second).
 """
 
 from __future__ import annotations
@@ -26,10 +27,10 @@ from typing import BinaryIO
 
 import cv2
 import numpy as np
+import simplejpeg
 
 ENCODINGS = {"jpeg": "jpgs", "raw": "npy"}  # encoding → member extension
 FORMAT_VERSION = 1
-TAR_BLOCK = 512
 NPY_HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
 
 
@@ -63,8 +64,9 @@ def decode_frames(data: bytes, extension: str, indices=None, out: np.ndarray | N
         lengths = np.frombuffer(data, dtype="<u4", count=count, offset=4)
         ends = (4 * (count + 1) + np.cumsum(lengths, dtype=np.int64)).tolist()
         starts = [4 * (count + 1), *ends[:-1]]
-        images = [cv2.imdecode(np.frombuffer(data, np.uint8, count=ends[i] - starts[i], offset=starts[i]),
-                               cv2.IMREAD_COLOR_RGB) for i in (range(count) if indices is None else indices)]
+        frames = memoryview(data)
+        images = [simplejpeg.decode_jpeg(frames[starts[i]:ends[i]], colorspace="RGB")
+                  for i in (range(count) if indices is None else indices)]
     else:
         raise ValueError(f"unknown frames member extension {extension!r}")
     return np.stack(images, out=out)
@@ -99,39 +101,21 @@ def open_writer(fileobj: BinaryIO) -> tarfile.TarFile:
 
 def read_samples(stream: BinaryIO, source: str) -> Iterator[dict]:
     """A shard's clips in order, as webdataset samples: `{"__key__": id, "json": bytes, "jpgs" | "npy": bytes}`.
-    `source` names the shard in errors."""
+    Reads the tar as a stream (tarfile's "r|" mode: no seeking, so `pipe:` sources work); `source` names the
+    shard in errors."""
+    broken = f"{source} is not a readable shard (%s); check it with `hauwm shards inspect DIR --verify` and rebuild it"
     sample: dict = {}
-    for name, data in _tar_members(stream, source):
-        key, extension = name.split(".", 1)
-        if sample and key != sample["__key__"]:
-            yield sample
-            sample = {}
-        sample["__key__"], sample[extension] = key, data
+    try:
+        with tarfile.open(fileobj=stream, mode="r|") as tar:
+            for member in tar:
+                if not member.isfile():
+                    raise ValueError(broken % f"member {member.name!r} is not a plain file")
+                key, extension = member.name.split(".", 1)
+                if sample and key != sample["__key__"]:
+                    yield sample
+                    sample = {}
+                sample["__key__"], sample[extension] = key, tar.extractfile(member).read()
+    except tarfile.TarError as error:
+        raise ValueError(broken % error) from None
     if sample:
         yield sample
-
-
-def _tar_members(stream: BinaryIO, source: str) -> Iterator[tuple[str, bytes]]:
-    """(name, data) of each member of a USTAR tar stream, up to the end-of-archive block: a 512-byte
-    header (name at 0, octal size at 124, checksum at 148, type at 156, name prefix at 345), then the
-    data padded to a multiple of 512 bytes."""
-    broken = f"{source} is not a readable shard (%s); check it with `hauwm shards inspect DIR --verify` and rebuild it"
-    while True:
-        header = stream.read(TAR_BLOCK)
-        if not header or header == bytes(TAR_BLOCK):
-            return
-        if len(header) < TAR_BLOCK:
-            raise ValueError(broken % "truncated")
-        checksum = sum(header) - sum(header[148:156]) + 8 * ord(" ")  # the checksum field counts as spaces
-        if header[148:156].strip(b"\0 ").lstrip(b"0") != b"%o" % checksum:  # octal, zero-padded
-            raise ValueError(broken % "a tar header with a wrong checksum")
-        name, prefix = header[:100].split(b"\0", 1)[0].decode(), header[345:500].split(b"\0", 1)[0].decode()
-        name = f"{prefix}/{name}" if prefix else name
-        if header[156:157] not in (b"0", b"\0"):
-            raise ValueError(broken % f"member {name!r} is not a plain file")
-        size = int(header[124:136].strip(b"\0 "), 8)
-        data = stream.read(size)
-        if len(data) < size:
-            raise ValueError(broken % f"truncated in {name!r}")
-        stream.read(-size % TAR_BLOCK)
-        yield name, data
