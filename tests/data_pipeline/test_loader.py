@@ -13,7 +13,7 @@ from scipy.stats import chisquare
 
 from data_pipeline import SetEpoch, ShardDataModule
 from data_pipeline.loader import LoaderError, SequenceDataset, make_dataloader, shard_set
-from data_pipeline.shard_format import decode_frames
+from data_pipeline.shard_format import decode_frames, read_samples
 
 
 def stored_clips(directory, split):
@@ -171,3 +171,29 @@ def test_lightning_fit_with_set_epoch_reshuffles_and_validates_deterministically
         assert [ids for ids, _ in later] == [ids for ids, _ in first]
         assert all(torch.equal(a, b) for (_, a), (_, b) in zip(later, first))
     assert Counter(len(ids) for ids, _ in first) == Counter({2: 2})
+
+
+def test_a_truncated_shard_is_refused_with_its_name(built_shards, tmp_path):
+    shard = built_shards / "train-000000.tar"
+    broken = tmp_path / shard.name
+    broken.write_bytes(shard.read_bytes()[: shard.stat().st_size // 3])  # cut inside a member
+    with pytest.raises(ValueError, match=rf"{broken.name} is not a readable shard.*--verify"):
+        with open(broken, "rb") as stream:
+            list(read_samples(stream, str(broken)))
+
+
+def test_a_shard_repacked_by_gnu_tar_reads_the_same(built_shards, tmp_path):
+    import shutil
+    import subprocess
+
+    if shutil.which("tar") is None:
+        pytest.skip("no tar command")
+    shard = built_shards / "train-000000.tar"
+    unpacked, repacked = tmp_path / "unpacked", tmp_path / "repacked.tar"
+    unpacked.mkdir()
+    with tarfile.open(shard) as tar:
+        names = tar.getnames()
+        tar.extractall(unpacked, filter="data")
+    subprocess.run(["tar", "--format=pax", "-cf", str(repacked), *names], cwd=unpacked, check=True)
+    with open(shard, "rb") as original, open(repacked, "rb") as copy:
+        assert list(read_samples(copy, "repacked")) == list(read_samples(original, "original"))
