@@ -1,7 +1,11 @@
 """Ensemble RSSM: one GRU deterministic path, one posterior, M Gaussian prior heads (paper eq. 1, appendix D.1).
 
     deter_t          = GRU(deter_{t-1}, MLP([stoch_{t-1}; Δt_k^e]))      the gap embedding enters where an action would
-    prior head i     : N(μ_i(deter_t), σ_i(deter_t)²)       i = 1..M   (eq. 1; all M heads in one batched matmul)
+    prior head i     : N(μ_i(deter_t, Δt_k^e), σ_i(deter_t, Δt_k^e)²)   i = 1..M   (eq. 1; one batched matmul)
+
+Each head also reads Δt_k^e directly, as eq. 1 and section 4.2 say ("this temporal conditioning is input to
+each ensemble dynamics head"): how far the heads may spread can then depend on k without first being
+routed through the GRU state.
     posterior        : N(μ_q(deter_t, e_t), σ_q(deter_t, e_t)²),  stoch_t ~ posterior   (e_t: image embedding)
 
 Distribution parameters are always float32, also under autocast, because 16-bit RSSMs are known to
@@ -82,7 +86,7 @@ class EnsembleRSSM(nn.Module):
         self.min_std, self.max_std = min_std, max_std
         self.img_in = nn.Sequential(nn.Linear(stoch + cond_dim, hidden), nn.ELU())
         self.cell = nn.GRUCell(hidden, deter)
-        self.prior_hidden = EnsembleLinear(ensemble, deter, hidden)
+        self.prior_hidden = EnsembleLinear(ensemble, deter + cond_dim, hidden)
         self.prior_out = EnsembleLinear(ensemble, hidden, 2 * stoch)
         self.posterior = nn.Sequential(nn.Linear(deter + embed_dim, hidden), nn.ELU(), nn.Linear(hidden, 2 * stoch))
 
@@ -99,16 +103,16 @@ class EnsembleRSSM(nn.Module):
     def feature(self, state: RSSMState) -> torch.Tensor:
         return torch.cat([state.deter, state.stoch.to(state.deter.dtype)], dim=-1)  # [..., deter + stoch]
 
-    def heads(self, deter: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """All M prior heads at once: deter [B, D] → mean, std [M, B, S] float32."""
-        hidden = F.elu(self.prior_hidden(deter))  # [M, B, H]
+    def heads(self, deter: torch.Tensor, cond: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """All M prior heads at once: deter [B, D], cond [B, C] → mean, std [M, B, S] float32."""
+        hidden = F.elu(self.prior_hidden(torch.cat([deter, cond.to(deter.dtype)], dim=-1)))  # [M, B, H]
         return _mean_std(self.prior_out(hidden), self.min_std, self.max_std)
 
     def img_step(self, prev: RSSMState, cond: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One transition without an observation: → deter [B, D], prior mean and std [M, B, S]."""
         x = self.img_in(torch.cat([prev.stoch, cond.to(prev.stoch.dtype)], dim=-1))
         deter = self.cell(x, prev.deter.to(x.dtype))
-        return (deter, *self.heads(deter))
+        return (deter, *self.heads(deter, cond))
 
     def obs_step(
         self,

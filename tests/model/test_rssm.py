@@ -43,10 +43,10 @@ def test_observe_and_imagine_shapes():
 
 def test_batched_heads_equal_a_per_head_reference():
     rssm = small_rssm(ensemble=7)
-    deter = torch.randn(9, 20)
-    mean, std = rssm.heads(deter)
+    deter, cond = torch.randn(9, 20), torch.randn(9, 8)
+    mean, std = rssm.heads(deter, cond)
     for i in range(7):
-        hidden = F.elu(deter @ rssm.prior_hidden.weight[i] + rssm.prior_hidden.bias[i])
+        hidden = F.elu(torch.cat([deter, cond], -1) @ rssm.prior_hidden.weight[i] + rssm.prior_hidden.bias[i])
         raw = hidden @ rssm.prior_out.weight[i] + rssm.prior_out.bias[i]
         ref_mean, ref_std = raw.chunk(2, -1)
         assert torch.allclose(mean[i], ref_mean, atol=1e-6)
