@@ -40,7 +40,18 @@ demo: install
 	    --split train --split validation --out $(DEMO)/shards --clips-per-shard 16 --workers 2 --max-error-rate 0.2
 	$(BIN)/hauwm shards inspect $(DEMO)/shards --verify
 	$(BIN)/hauwm shards preview $(DEMO)/shards --out $(DEMO)/preview.png
-	@echo "demo: shards in $(DEMO)/shards, preview at $(DEMO)/preview.png"
+	$(BIN)/hauwm pretrain fit --config configs/pretrain/tiny.yaml --data.shards $(DEMO)/shards \
+	    --trainer.default_root_dir $(DEMO)/pretrain
+	$(BIN)/hauwm pretrain export $(DEMO)/pretrain/checkpoints/last.ckpt --out $(DEMO)/export
+	$(BIN)/hauwm pretrain analyze --model $(DEMO)/export --shards $(DEMO)/shards --out $(DEMO)/analysis
+	$(BIN)/hauwm finetune --config configs/finetune/demo.yaml --pretrained $(DEMO)/export --logdir $(DEMO)/finetune
+	@echo
+	@echo "demo done:"
+	@echo "  shards        $(DEMO)/shards        (preview: $(DEMO)/preview.png)"
+	@echo "  pre-training  $(DEMO)/pretrain      (TensorBoard: .venv/bin/tensorboard --logdir $(DEMO)/pretrain)"
+	@echo "  export        $(DEMO)/export"
+	@echo "  analysis      $(DEMO)/analysis      (disagreement vs k and imagined rollouts, PNG + figures.json)"
+	@echo "  fine-tuning   $(DEMO)/finetune"
 
 test: install
 	$(BIN)/python -m pytest

@@ -9,7 +9,7 @@ embedding plus Gaussian noise where an action would enter:
 New action-conditioned stream (trained from scratch, the same RSSM building block with one prior head):
 
     h̃_t = GRU(h̃_{t−1}, [s̃_{t−1}; a_{t−1}])
-    prior      p_ψ(s̃_t | h̃_t)             posterior   q_ψ(s̃_t | h̃_t, ŝ_t)     (ŝ_t enters as the frozen feature [deter; stoch])
+    prior      p_ψ(s̃_t | h̃_t, a_{t−1})     posterior   q_ψ(s̃_t | h̃_t, ŝ_t)     (ŝ_t enters as the frozen feature [deter; stoch])
     reward     R(s̃_t) = MLP(s̃_t)          decoder     D(s̃_t) → ô_t
 
 Losses of the new stream (APV's stacked model is the reference: its action-conditioned stream has its own

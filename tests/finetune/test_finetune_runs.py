@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from finetune.cli import main
-from finetune.config import FinetuneConfig, load_config
+from finetune.config import load_config
 from finetune.train import CHECKPOINT, build_agent, export_fingerprint, load_checkpoint, train
 from model.export import export_frozen
 from model.world_model import WorldModel
