@@ -15,6 +15,7 @@ import multiprocessing as mp
 import os
 import platform
 import resource
+import statistics
 import time
 
 SIZES = {  # world-model sizes (configs/pretrain/tiny.yaml and ssv2.yaml) and batch shape
@@ -54,11 +55,13 @@ def measure(size: str, ensemble: int, steps: int, threads: int, rssm_only: bool,
         optimizer.step()
 
     step()  # warm-up
-    start = time.perf_counter()
+    durations = []
     for _ in range(steps):
+        start = time.perf_counter()
         step()
-    seconds = (time.perf_counter() - start) / steps
-    queue.put((seconds, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
+        durations.append(time.perf_counter() - start)
+    # the median: one step slowed by another process on a shared machine does not move it
+    queue.put((statistics.median(durations), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
 
 
 def run(size: str, ensemble: int, steps: int, threads: int, rssm_only: bool = False) -> tuple[float, float]:
@@ -80,7 +83,7 @@ def main() -> None:
     import torch
 
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
-          f"{args.threads} threads, float32, {args.steps} timed steps after 1 warm-up")
+          f"{args.threads} threads, float32, median of {args.steps} timed steps after 1 warm-up")
     print(f"{'setting':<34} {'batch×len':>9} {'s/step':>8} {'peak RSS MB':>12}")
     ratios = []
     for size in ["tiny"] if args.skip_paper else ["tiny", "paper"]:

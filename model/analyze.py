@@ -15,18 +15,15 @@ import json
 import math
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure  # no pyplot: no GUI backend, no global figure state
+from tqdm import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from data_pipeline.loader import SequenceDataset, shard_set  # noqa: E402
-from model.evaluation import horizon_metrics, horizon_sums  # noqa: E402
-from model.export import FrozenWorldModel, load_frozen  # noqa: E402
-from model.losses import disagreement  # noqa: E402
+from data_pipeline.loader import SequenceDataset, shard_set
+from model.evaluation import horizon_metrics, horizon_sums
+from model.export import FrozenWorldModel, load_frozen
+from model.losses import disagreement
 
 
 def model_label(model: FrozenWorldModel, name: str) -> str:
@@ -83,7 +80,8 @@ def to_image(x: torch.Tensor) -> np.ndarray:
 
 
 def plot_horizon(results: list[dict], path: Path) -> None:
-    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    fig = Figure(figsize=(10, 4))
+    left, right = fig.subplots(1, 2)
     for result in results:
         metrics = result["horizon"]
         left.plot(metrics["k"], metrics["disagreement"], marker="o",
@@ -96,13 +94,13 @@ def plot_horizon(results: list[dict], path: Path) -> None:
         axis.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def plot_rollout(data: dict, title: str, path: Path) -> None:
     rows = {"ground truth": data["truth"], **data["rows"]}
     steps = len(data["gaps"])
-    fig, axes = plt.subplots(len(rows), steps, figsize=(1.3 * steps + 1, 1.35 * len(rows) + 0.6), squeeze=False)
+    fig = Figure(figsize=(1.3 * steps + 1, 1.35 * len(rows) + 0.6))
+    axes = fig.subplots(len(rows), steps, squeeze=False)
     for r, (name, images) in enumerate(rows.items()):
         for c in range(steps):
             axis = axes[r, c]
@@ -118,7 +116,6 @@ def plot_rollout(data: dict, title: str, path: Path) -> None:
     fig.suptitle(f"{title}\nclip {data['id']}, imagined after frames {data['context_indices']}; u = disagreement", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def analyze(

@@ -32,8 +32,7 @@ def lightning_cli(args: list[str]):
 
     from data_pipeline.datamodule import ShardDataModule
     from data_pipeline.loader import read_manifest
-    from model.module import ConfigError, PretrainModule
-    from model.world_model import MODEL_KEYS
+    from model.module import ConfigError, PretrainModule, refuse_other_size
 
     class PretrainCLI(LightningCLI):
         def add_arguments_to_parser(self, parser) -> None:
@@ -46,14 +45,7 @@ def lightning_cli(args: list[str]):
             ckpt_path = config.get("ckpt_path") if config else None
             if ckpt_path and Path(ckpt_path).is_file():
                 saved = torch.load(ckpt_path, weights_only=True, map_location="cpu").get("hyper_parameters", {})
-                asked = config["model"]
-                different = [f"{key}: checkpoint {saved[key]!r} vs this run {asked[key]!r}"
-                             for key in MODEL_KEYS if key in saved and saved[key] != asked[key]]
-                if different:
-                    raise ConfigError(
-                        f"{ckpt_path} was trained with a different model size ({', '.join(different)}); resume with "
-                        "the checkpoint's own settings (its config.yaml sits in the run's lightning_logs/version_N/)"
-                    )
+                refuse_other_size(saved, config["model"], str(ckpt_path))
             super()._parse_ckpt_path()
 
         def before_instantiate_classes(self) -> None:
@@ -76,6 +68,8 @@ def lightning_cli(args: list[str]):
 
     # `hauwm` passes its own argv on purpose; Lightning would warn that sys.argv differs
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
+    # checkpoints after the optimizer step are what resume needs; Lightning warns about it under manual optimisation
+    warnings.filterwarnings("ignore", message="Using ModelCheckpoint with manual optimization")
     return PretrainCLI(
         PretrainModule,
         ShardDataModule,
@@ -111,7 +105,7 @@ def analyze_command(argv: list[str]) -> int:
     parser.add_argument("--out", type=Path, required=True, help="directory for the PNG plots and figures.json")
     parser.add_argument("--split", default="validation")
     parser.add_argument("--batches", type=int, default=8, help="held-out batches to average over")
-    parser.add_argument("--batch-size", type=int, default=16)
+    parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--seq-len", type=int, default=12)
     parser.add_argument("--k-max", type=int, default=None, help="largest gap k (default: the first model's training K_max)")
     parser.add_argument("--heads", type=int, default=4, help="ensemble heads shown side by side in the rollout figure")

@@ -55,6 +55,17 @@ def check_settings(ensemble: int, k_max: int, lambda_init: float, kl_balance: fl
         raise ConfigError(f"model.hcu_target must be positive, got {hcu_target}")
 
 
+def refuse_other_size(saved: dict, asked, source: str) -> None:
+    """Raise ConfigError if a checkpoint's model settings (saved hyper-parameters) differ from this run's."""
+    different = [f"{key}: checkpoint {saved[key]!r} vs this run {asked[key]!r}"
+                 for key in MODEL_KEYS if key in saved and saved[key] != asked[key]]
+    if different:
+        raise ConfigError(
+            f"{source} was trained with a different model size ({', '.join(different)}); resume with the "
+            "checkpoint's own settings (its config.yaml sits in the run's lightning_logs/version_N/)"
+        )
+
+
 class PretrainModule(L.LightningModule):
     def __init__(
         self,
@@ -177,14 +188,7 @@ class PretrainModule(L.LightningModule):
             # under 16-mixed the grad scaler skips the step itself and lowers its scale
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        saved = checkpoint.get("hyper_parameters", {})
-        different = {key: (saved[key], self.hparams[key]) for key in MODEL_KEYS if key in saved and saved[key] != self.hparams[key]}
-        if different:
-            listing = ", ".join(f"{key}: checkpoint {old!r} vs this run {new!r}" for key, (old, new) in different.items())
-            raise ConfigError(
-                f"the checkpoint was trained with a different model size ({listing}); resume with the checkpoint's "
-                "own settings (its config.yaml sits next to it in the run directory)"
-            )
+        refuse_other_size(checkpoint.get("hyper_parameters", {}), self.hparams, "the checkpoint")
 
     # validation: open-loop one-jump prediction per gap k (model/evaluation.py)
 

@@ -34,7 +34,8 @@ class WorldModel(nn.Module):
         super().__init__()
         self.config = dict(
             cnn_width=cnn_width, embed_dim=embed_dim, deter=deter, stoch=stoch, hidden=hidden, ensemble=ensemble,
-            min_std=min_std, max_std=max_std, temporal_mode=temporal_mode, temporal_dim=temporal_dim, reference_length=reference_length,
+            min_std=min_std, max_std=max_std,
+            temporal_mode=temporal_mode, temporal_dim=temporal_dim, reference_length=reference_length,
         )
         self.encoder = Encoder(cnn_width, embed_dim)
         self.temporal = TemporalEmbedding(temporal_dim, temporal_mode, reference_length)
