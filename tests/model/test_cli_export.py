@@ -16,7 +16,7 @@ from model.export import ExportError, FrozenWorldModel, load_frozen
 from model.module import PretrainModule
 from model.rssm import RSSMState
 
-from conftest import RUN_STEPS, fit  # noqa: I001 (tests/model/conftest.py)
+from conftest import RUN_STEPS, fit, make_batch  # noqa: I001 (tests/model/conftest.py)
 
 
 def scalars(run, tag: str) -> list[float]:
@@ -126,3 +126,20 @@ def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path):
     assert len(figures["models"][0]["rollout"]["disagreement"]) == 4
     for png in ["disagreement_vs_k.png", *(f"rollouts_{i}-{tiny_export.name}.png" for i in range(2))]:
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_16_mixed_asked_on_a_cpu_trains_in_bf16_mixed_with_float32_distributions(built_shards, tmp_path, capsys):
+    """The GPU's 16-mixed path has a CPU equivalent: the CLI switches to bf16-mixed, says so, and training
+    stays finite with the distribution parameters in float32 under autocast."""
+    root = tmp_path / "bf16"
+    assert fit(built_shards, root, "--trainer.precision", "16-mixed", "--trainer.max_steps", "3",
+               "--trainer.val_check_interval", "3") == 0
+    assert "using bf16-mixed on CPU" in capsys.readouterr().err
+    losses = scalars(root, "train/loss")
+    assert len(losses) == 3 and all(torch.isfinite(torch.tensor(losses)))
+    assert scalars(root, "train/skipped_steps")[-1] == 0
+    module = PretrainModule.load_from_checkpoint(root / "checkpoints" / "last.ckpt", map_location="cpu")
+    batch = make_batch()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        obs = module.world_model.observe(batch["frames"], batch["gaps"], batch["num_frames"], torch.Generator())
+    assert obs.prior_mean.dtype == obs.prior_std.dtype == obs.post_std.dtype == torch.float32
