@@ -63,7 +63,10 @@ class ShardDataModule(lightning.LightningDataModule):
                           "epoch reads the shards in the same order", stacklevel=2)
         # Lightning warns that a sized IterableDataset may be inaccurate with workers; ours splits per worker.
         warnings.filterwarnings("ignore", message=".*`IterableDataset` has `__len__` defined")
-        return make_dataloader(self.train_set)
+        loader = make_dataloader(self.train_set)
+        if self.trainer is not None:  # batches of this epoch trained on, for a checkpoint's data position
+            loader.batches_done = lambda: self.trainer.fit_loop.epoch_loop.batch_progress.current.processed
+        return loader
 
     def val_dataloader(self):
         return make_dataloader(self.val_set)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 import random
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
@@ -151,20 +151,26 @@ class SequenceDataset(IterableDataset):
         self.batch_size, self.seq_len, self.k_max = batch_size, seq_len, k_max
         self.shuffle, self.shuffle_buffer, self.seed = shuffle, shuffle_buffer, seed
         self.epoch = 0
+        self.skip_batches = 0  # batches of this epoch already trained on (a resumed run), per rank
 
     def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
+        self.epoch, self.skip_batches = epoch, 0
+
+    def resume_at(self, epoch: int, batches: int) -> None:
+        """The next iterator continues epoch `epoch` after its first `batches` batches (per rank)."""
+        self.epoch, self.skip_batches = epoch, batches
 
     def __len__(self) -> int:
         return self.batches_per_worker * self.workers
 
-    def stream_urls(self) -> list[str]:
-        """The shards this rank and worker read this epoch: the list shuffled with seed + epoch (the same
-        order everywhere), then split by node and by worker (webdataset's `split_by_node`, `split_by_worker`)."""
+    def stream_urls(self, worker: int) -> list[str]:
+        """The shards stream `worker` of this rank reads this epoch: the list shuffled with seed + epoch (the
+        same order everywhere), split by node (webdataset's `split_by_node`), then every `workers`-th shard
+        from `worker` on (what `split_by_worker` does, for a stream index that need not be the process's)."""
         urls = list(self.urls)
         if self.shuffle:
             random.Random(self.seed + self.epoch).shuffle(urls)
-        return list(wds.split_by_worker(wds.split_by_node(urls)))
+        return list(wds.split_by_node(urls))[worker :: self.workers]
 
     def _passes(self, urls: list[str], rng: np.random.Generator) -> Iterator[dict]:
         """Tar samples from this stream's shards, pass after pass (the batch cap ends the epoch); each
@@ -179,12 +185,19 @@ class SequenceDataset(IterableDataset):
             yield from wds.DataPipeline(*stages)
 
     def __iter__(self) -> Iterator[dict]:
-        rank, _, worker, _ = pytorch_worker_info()
-        urls = self.stream_urls()
-        rng = np.random.default_rng([self.seed, self.epoch, rank, worker])
+        """This worker's batches of the epoch. A DataLoader takes batch i from worker i mod W, and after a
+        resume it still asks worker 0 first: so worker p plays stream (p + skip) mod W, which skips the
+        sequences its stream already gave (without decoding them), and the batches come in the same order as
+        in an uninterrupted run."""
+        rank, _, process_worker, _ = pytorch_worker_info()
+        stream = (process_worker + self.skip_batches) % self.workers
+        skipped = (self.skip_batches - stream + self.workers - 1) // self.workers  # batches this stream gave
+        rng = np.random.default_rng([self.seed, self.epoch, rank, stream])
+        urls = self.stream_urls(stream)
         sequences = (to_sequence(sample, self.seq_len, self.k_max, rng) for sample in self._passes(urls, rng))
-        batches = wds.batched(self.batch_size, collation_fn=collate, partial=False)(filter(None, sequences))
-        return islice(batches, self.batches_per_worker)
+        remaining = islice(filter(None, sequences), skipped * self.batch_size, None)
+        batches = wds.batched(self.batch_size, collation_fn=collate, partial=False)(remaining)
+        return islice(batches, max(0, self.batches_per_worker - skipped))
 
 
 def _init_worker(_: int) -> None:
@@ -194,8 +207,24 @@ def _init_worker(_: int) -> None:
     torch.set_num_threads(1)
 
 
-def make_dataloader(dataset: SequenceDataset) -> DataLoader:
+class ResumableDataLoader(DataLoader):
+    """A DataLoader that Lightning resumes inside an epoch. Lightning stores `state_dict()` in every
+    checkpoint and, on resume, calls `load_state_dict()` right before it creates the resumed epoch's
+    iterator (before any epoch hook could set the epoch). `batches_done` reports how many batches of the
+    current epoch the training loop has consumed (the data module points it at the Trainer's progress)."""
+
+    batches_done: Callable[[], int] = staticmethod(lambda: 0)
+
+    def state_dict(self) -> dict:
+        return {"epoch": self.dataset.epoch, "batches": int(self.batches_done())}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.dataset.resume_at(state["epoch"], state["batches"])
+
+
+def make_dataloader(dataset: SequenceDataset) -> ResumableDataLoader:
     """Batches come collated from the dataset, so `batch_size=None`; workers restart every epoch
     (`persistent_workers=False`) so they see the epoch `SetEpoch` set."""
-    return DataLoader(dataset, batch_size=None, num_workers=dataset.num_workers, worker_init_fn=_init_worker,
-                      persistent_workers=False, pin_memory=torch.cuda.is_available())
+    return ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
+                               worker_init_fn=_init_worker, persistent_workers=False,
+                               pin_memory=torch.cuda.is_available())

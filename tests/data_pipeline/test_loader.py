@@ -84,7 +84,7 @@ def test_two_ranks_by_two_workers_get_equal_batch_counts_over_uneven_shards(buil
     assert all(not (a & b) for i, a in enumerate(streams) for b in streams[i + 1:])  # each shard read by one stream
 
 
-def test_real_dataloader_workers_yield_len_batches_without_repeats_within_a_pass(built_shards, monkeypatch):
+def test_real_dataloader_workers_yield_len_batches_without_repeats_within_a_pass(built_shards):
     shards = shard_set(built_shards, "train")
     clips_in = dict(zip(shards.urls, shards.eligible(8)))
     dataset = SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=2)
@@ -92,8 +92,7 @@ def test_real_dataloader_workers_yield_len_batches_without_repeats_within_a_pass
     batches = list(make_dataloader(dataset))
     assert len(batches) == len(dataset) == 2 * (18 // 4)
     for worker in range(2):  # the DataLoader takes batches from its workers in turn
-        as_stream(monkeypatch, 0, 1, worker, 2)
-        stream_clips = sum(clips_in[url] for url in dataset.stream_urls())
+        stream_clips = sum(clips_in[url] for url in dataset.stream_urls(worker))
         ids = [clip_id for batch in batches[worker::2] for clip_id in batch["id"]]
         first_pass = ids[:stream_clips]
         assert len(set(first_pass)) == len(first_pass)
@@ -197,3 +196,26 @@ def test_a_shard_repacked_by_gnu_tar_reads_the_same(built_shards, tmp_path):
     subprocess.run(["tar", "--format=pax", "-cf", str(repacked), *names], cwd=unpacked, check=True)
     with open(shard, "rb") as original, open(repacked, "rb") as copy:
         assert list(read_samples(copy, "repacked")) == list(read_samples(original, "original"))
+
+
+@pytest.mark.parametrize("stop_at", [5, 9])  # mid-epoch (an epoch here is 6 batches), and inside the second epoch
+def test_resuming_mid_epoch_continues_the_data_stream_exactly(built_shards, tmp_path, stop_at):
+    """A run stopped at step `stop_at` and resumed from its checkpoint sees the same batches, in the same
+    order, as an uninterrupted run: the epoch's shard order and the position inside the epoch come back."""
+
+    def run(max_steps: int, root, ckpt_path=None) -> list[str]:
+        data = ShardDataModule(str(built_shards), batch_size=3, seq_len=8, num_workers=2, val_batches=2, seed=3)
+        model = RecordingModel()
+        checkpoint = lightning.pytorch.callbacks.ModelCheckpoint(dirpath=root, every_n_train_steps=stop_at)
+        trainer = lightning.Trainer(max_steps=max_steps, accelerator="cpu", devices=1, logger=False,
+                                    callbacks=[SetEpoch(), checkpoint], enable_progress_bar=False,
+                                    limit_val_batches=0, num_sanity_val_steps=0, enable_model_summary=False)
+        trainer.fit(model, datamodule=data, ckpt_path=ckpt_path)
+        return [clip for epoch in sorted(model.train_ids) for clip in model.train_ids[epoch]]
+
+    total = 14
+    uninterrupted = run(total, tmp_path / "full")
+    first = run(stop_at, tmp_path / "first")
+    resumed = run(total, tmp_path / "resumed", ckpt_path=next((tmp_path / "first").glob("*.ckpt")))
+    assert first == uninterrupted[: 3 * stop_at]
+    assert resumed == uninterrupted[3 * stop_at:]
