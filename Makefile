@@ -11,7 +11,7 @@ export PYOPENGL_PLATFORM ?= osmesa
 # Debian packages the project needs: OSMesa for headless MuJoCo rendering.
 APT_PACKAGES := libosmesa6 libgl1 libegl1
 
-.PHONY: install demo test test-all bench clean system-deps
+.PHONY: install demo test test-all bench bench-checks clean system-deps
 
 install: $(STAMP)
 
@@ -59,8 +59,15 @@ test: install
 test-all: install
 	$(BIN)/python -m pytest -m "slow or not slow"
 
+# speed figures (minutes); the paper-claim and learning checks take ~10 and ~25 minutes: `make bench-checks`
+BENCH_SPEED := bench/bench_shards.py bench/bench_loader.py bench/bench_pretrain.py bench/bench_envs.py bench/bench_agent.py
+BENCH_CHECKS := bench/bench_pretrain_claim.py bench/bench_learning.py
+
 bench: install
-	@for script in bench/bench_*.py; do echo "== $$script"; $(BIN)/python $$script || exit 1; done
+	@for script in $(BENCH_SPEED); do echo "== $$script"; $(BIN)/python $$script || exit 1; done
+
+bench-checks: install
+	@for script in $(BENCH_CHECKS); do echo "== $$script"; $(BIN)/python $$script || exit 1; done
 
 clean:
 	rm -rf $(DEMO) runs .pytest_cache
