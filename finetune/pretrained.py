@@ -42,11 +42,7 @@ def load_pretrained(directory: str | Path, device: torch.device | str = "cpu") -
     if model.rssm.feature_dim != config.get("feature_dim", model.rssm.feature_dim):
         raise PretrainedError(f"--pretrained {directory}: config.json says feature_dim {config['feature_dim']}, "
                               f"the weights give {model.rssm.feature_dim}; re-export the checkpoint")
-    if model.temporal.dim != model.rssm.img_in[0].in_features - model.rssm.stoch_dim:
-        raise PretrainedError(f"--pretrained {directory}: temporal_dim {model.temporal.dim} does not match the "
-                              "RSSM's conditioning input; re-export the checkpoint")
-    model.requires_grad_(False).eval()
-    return model
+    return model  # load_frozen returns it frozen and in eval mode
 
 
 def _check_convention(config: dict, path: Path) -> None:
