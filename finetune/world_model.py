@@ -42,10 +42,10 @@ from typing import NamedTuple
 
 import torch
 from torch import nn
-from torch.distributions import Normal, kl_divergence
 
 from finetune.behavior import mlp
 from finetune.config import FinetuneConfig
+from model.losses import gaussian_kl, reconstruction_nll
 from model.networks import Decoder, Encoder, preprocess
 from model.rssm import EnsembleRSSM, RSSMState
 
@@ -151,12 +151,10 @@ class WorldModel(nn.Module):
         latent, (post_mean, post_std, prior_mean, prior_std) = self.observe(batch["obs"], batch["action"])
         feat = self.rssm.feature(latent.new)  # [B, L, F~]
         recon = self.decoder(feat)  # [B, L, 3, 64, 64]
-        recon_nll = 0.5 * (recon - preprocess(batch["obs"])).pow(2).sum((-3, -2, -1)).mean()
+        recon_nll = reconstruction_nll(recon, preprocess(batch["obs"])).mean()
         reward_nll = 0.5 * (self.reward(feat).squeeze(-1) - batch["reward"]).pow(2).mean()
-        post, prior = Normal(post_mean, post_std), Normal(prior_mean, prior_std)
-        post_sg, prior_sg = Normal(post_mean.detach(), post_std.detach()), Normal(prior_mean.detach(), prior_std.detach())
-        kl_prior = kl_divergence(post_sg, prior).sum(-1).mean()  # trains the prior
-        kl_post = kl_divergence(post, prior_sg).sum(-1).mean()  # regularises the posterior
+        kl_prior = gaussian_kl(post_mean.detach(), post_std.detach(), prior_mean, prior_std).mean()  # trains the prior
+        kl_post = gaussian_kl(post_mean, post_std, prior_mean.detach(), prior_std.detach()).mean()  # regularises q
         kl = self.kl_balance * kl_prior.clamp(min=self.free_nats) + (1 - self.kl_balance) * kl_post.clamp(min=self.free_nats)
         loss = recon_nll + reward_nll + self.kl_scale * kl
         metrics = {"model_loss": loss.item(), "recon_nll": recon_nll.item(), "reward_nll": reward_nll.item(),
