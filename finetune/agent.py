@@ -47,7 +47,7 @@ class Agent(nn.Module):
         obs_t = torch.as_tensor(obs, device=self.device).unsqueeze(0)
         latent = self.world_model.observe_step(latent, prev_action, obs_t)
         dist = self.behavior.actor(self.world_model.feature(latent))
-        action = dist.sample() if explore else self.behavior.actor.mode(dist)
+        action = dist.sample() if explore else dist.mode
         return action[0].cpu().numpy(), latent, action
 
     def trainable_state_dict(self) -> dict[str, torch.Tensor]:

@@ -6,9 +6,11 @@ reward head predicts for the state reached after action a_{t-1}, v the critic, v
 
     λ-return   V^λ_t = r_{t+1} + γ [ (1 − λ) v'(z_{t+1}) + λ V^λ_{t+1} ],    V^λ_H = v'(z_H)        (γ 0.99, λ 0.95)
     weights    w_t = γ^t                    (no terminal states in these tasks: time limits are not terminals)
-    actor      L_π = − Σ_t w_t [ V^λ_t + η · H(π(·|z_t)) ] / (H·N)
-               dynamics backprop: a_t = tanh(μ + σ ε) is reparameterised, so ∂V^λ/∂ξ flows through the
-               world model's imagined transitions and reward head into the policy parameters ξ
+    policy     π(a|z) = N(tanh μ(z), σ(z)²) truncated to [−1, 1],  σ = 2·sigmoid(raw/2) + 0.1   (DreamerV2's
+               continuous actor, which APV uses; sampled by inverting the CDF, so samples are reparameterised)
+    actor      L_π = − Σ_t w_t [ V^λ_t + η · H(π(·|z_t)) ] / (H·N)                                (η 1e-4)
+               dynamics backprop: ∂V^λ/∂ξ flows from the returns through the world model's imagined
+               transitions and reward head into the sampled actions and the policy parameters ξ
     critic     L_v = Σ_t w_t · ½ (v(z_t) − sg(V^λ_t))² / (H·N)
     target     v' ← (1 − τ) v' + τ v after every update                                   (τ 0.02)
 
@@ -23,8 +25,7 @@ from collections.abc import Callable
 
 import torch
 from torch import nn
-from torch.distributions import Independent, Normal, TransformedDistribution
-from torch.distributions.transforms import TanhTransform
+from torch.distributions import Distribution
 
 
 def mlp(in_dim: int, out_dim: int, units: int, layers: int = 2) -> nn.Sequential:
@@ -49,25 +50,58 @@ def lambda_return(rewards: torch.Tensor, values: torch.Tensor, gamma: float, lam
     return torch.stack(returns[:0:-1])  # [H, N], in time order
 
 
-class Actor(nn.Module):
-    """π(a|z): a tanh-squashed diagonal Gaussian (DreamerV1/V2's continuous actor)."""
+class TruncatedNormal(Distribution):
+    """Diagonal N(loc, scale²) truncated to [low, high]; the last dim is the event (one action).
 
-    def __init__(self, feat_dim: int, action_dim: int, units: int, init_std: float = 5.0, min_std: float = 1e-4):
+    rsample inverts the CDF, x = loc + scale · Φ⁻¹(Φ(α) + u (Φ(β) − Φ(α))) with u ~ U(0, 1), α = (low − loc)/scale
+    and β = (high − loc)/scale, so gradients reach loc and scale. Samples are kept 1e-6 inside the bounds with
+    a straight-through clip, as DreamerV2's SafeTruncatedNormal does.
+    """
+
+    arg_constraints: dict = {}
+    has_rsample = True
+
+    def __init__(self, loc: torch.Tensor, scale: torch.Tensor, low: float = -1.0, high: float = 1.0, clip: float = 1e-6):
+        self.loc, self.scale, self.low, self.high, self.clip = loc, scale, low, high, clip
+        self.alpha, self.beta = (low - loc) / scale, (high - loc) / scale
+        self.cdf_low = torch.special.ndtr(self.alpha)
+        self.mass = (torch.special.ndtr(self.beta) - self.cdf_low).clamp(min=1e-8)  # Z = Φ(β) − Φ(α)
+        super().__init__(loc.shape[:-1], loc.shape[-1:], validate_args=False)
+
+    @property
+    def mode(self) -> torch.Tensor:
+        return self.loc.clamp(self.low, self.high)
+
+    def rsample(self, sample_shape: torch.Size = torch.Size()) -> torch.Tensor:
+        u = torch.rand(self._extended_shape(sample_shape), dtype=self.loc.dtype, device=self.loc.device)
+        p = (self.cdf_low + u * self.mass).clamp(1e-7, 1 - 1e-7)
+        x = self.loc + self.scale * torch.special.ndtri(p)
+        return x + (x.clamp(self.low + self.clip, self.high - self.clip) - x).detach()
+
+    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        z = (value - self.loc) / self.scale
+        return (-0.5 * z**2 - 0.5 * math.log(2 * math.pi) - self.scale.log() - self.mass.log()).sum(-1)
+
+    def entropy(self) -> torch.Tensor:
+        """log(√(2πe) σ Z) + (α φ(α) − β φ(β)) / (2Z), summed over action dims."""
+        def pdf(t: torch.Tensor) -> torch.Tensor:
+            return torch.exp(-0.5 * t**2) / math.sqrt(2 * math.pi)
+
+        tails = (self.alpha * pdf(self.alpha) - self.beta * pdf(self.beta)) / (2 * self.mass)
+        return (0.5 * math.log(2 * math.pi * math.e) + self.scale.log() + self.mass.log() + tails).sum(-1)
+
+
+class Actor(nn.Module):
+    """π(a|z): DreamerV2's truncated-normal continuous actor, loc tanh(μ) and std in (0.1, 2.1), 1.1 at init."""
+
+    def __init__(self, feat_dim: int, action_dim: int, units: int, min_std: float = 0.1):
         super().__init__()
         self.net = mlp(feat_dim, 2 * action_dim, units)
-        self.raw_init_std = math.log(math.expm1(init_std))
         self.min_std = min_std
 
-    def forward(self, feat: torch.Tensor) -> TransformedDistribution:
+    def forward(self, feat: torch.Tensor) -> TruncatedNormal:
         mean, raw_std = self.net(feat).chunk(2, dim=-1)
-        mean = 5.0 * torch.tanh(mean / 5.0)
-        std = nn.functional.softplus(raw_std + self.raw_init_std) + self.min_std
-        return TransformedDistribution(Independent(Normal(mean, std), 1), [TanhTransform(cache_size=1)])
-
-    @staticmethod
-    def mode(dist: TransformedDistribution) -> torch.Tensor:
-        """The deterministic action used in evaluation episodes: tanh of the Gaussian mean."""
-        return torch.tanh(dist.base_dist.mean)
+        return TruncatedNormal(torch.tanh(mean), 2 * torch.sigmoid(raw_std / 2) + self.min_std)
 
 
 class Critic(nn.Module):
@@ -81,8 +115,8 @@ class Critic(nn.Module):
         return self.net(feat).squeeze(-1)
 
 
-# imagine(start, policy, horizon) -> (feats [H+1, N, F], rewards [H, N], log_probs [H, N])
-Imagine = Callable[[object, Callable[[torch.Tensor], TransformedDistribution], int], tuple[torch.Tensor, ...]]
+# imagine(start, policy, horizon) -> (feats [H+1, N, F], rewards [H, N], policy entropies [H, N])
+Imagine = Callable[[object, Callable[[torch.Tensor], TruncatedNormal], int], tuple[torch.Tensor, ...]]
 
 
 class ActorCritic(nn.Module):
@@ -100,11 +134,10 @@ class ActorCritic(nn.Module):
 
     def update(self, imagine: Imagine, start: object) -> dict[str, float]:
         """One actor and one critic step on trajectories imagined from the posterior states `start`."""
-        feats, rewards, log_probs = imagine(start, self.actor, self.horizon)  # [H+1,N,F], [H,N], [H,N]
+        feats, rewards, entropy = imagine(start, self.actor, self.horizon)  # [H+1,N,F], [H,N], [H,N]
         values = self.target_critic(feats)  # [H+1, N]; gradients reach feats (dynamics backprop)
         returns = lambda_return(rewards, values, self.gamma, self.lam)  # [H, N]
         weights = self.gamma ** torch.arange(self.horizon, dtype=returns.dtype, device=returns.device)[:, None]
-        entropy = -log_probs  # single-sample estimate of H(π(·|z_t)), [H, N]
         actor_loss = -(weights * (returns + self.entropy_scale * entropy)).mean()
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()

@@ -193,18 +193,18 @@ class WorldModel(nn.Module):
     def imagine(self, start: Latent, policy: Callable, horizon: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Roll out `horizon` steps from every start state ([B, L, ·] flattened to N = B·L).
 
-        Returns feats z_0..z_H [H+1, N, F], rewards R(s̃_1..s̃_H) [H, N] and the actions' log-probs [H, N].
+        Returns feats z_0..z_H [H+1, N, F], rewards R(s̃_1..s̃_H) [H, N] and the policy's entropies [H, N].
         Gradients reach the policy through the new stream's transitions and the reward head, whose own
         parameters record no gradient here (they are trained by the model loss only).
         """
         flat = Latent(*(None if s is None else RSSMState(s.deter.flatten(0, 1), s.stoch.flatten(0, 1)) for s in start))
         frozen, new = flat
-        feats, new_feats, log_probs = [self.feature(flat)], [], []
+        feats, new_feats, entropies = [self.feature(flat)], [], []
         with no_param_grads(self):
             for _ in range(horizon):
                 dist = policy(feats[-1].detach())
                 action = dist.rsample()  # [N, A]
-                log_probs.append(dist.log_prob(action))
+                entropies.append(dist.entropy())
                 if frozen is not None:
                     with torch.no_grad():
                         deter, means, _ = self.frozen.rssm.img_step(frozen, self.frozen_cond(action.shape[0]))
@@ -214,4 +214,4 @@ class WorldModel(nn.Module):
                 new_feats.append(self.rssm.feature(new))
                 feats.append(self.feature(Latent(frozen, new)))
             rewards = self.reward(torch.stack(new_feats)).squeeze(-1)  # [H, N]
-        return torch.stack(feats), rewards, torch.stack(log_probs)
+        return torch.stack(feats), rewards, torch.stack(entropies)

@@ -78,9 +78,9 @@ def test_imagination_advances_the_frozen_stream_with_its_ensemble_mean(export_di
     agent = make_agent(cfg, export_dir)
     wm = agent.world_model
     start, _ = wm.observe(*(torch.as_tensor(v) for v in list(random_batch(cfg, np.random.default_rng(2)).values())[:2]))
-    feats, rewards, log_probs = wm.imagine(start, agent.behavior.actor, horizon=2)
+    feats, rewards, entropies = wm.imagine(start, agent.behavior.actor, horizon=2)
     n = cfg.batch_size * cfg.seq_len
-    assert feats.shape == (3, n, wm.feature_dim) and rewards.shape == (2, n) and log_probs.shape == (2, n)
+    assert feats.shape == (3, n, wm.feature_dim) and rewards.shape == (2, n) and entropies.shape == (2, n)
     frozen = wm.frozen.rssm
     state = type(start.frozen)(start.frozen.deter.flatten(0, 1), start.frozen.stoch.flatten(0, 1))
     with torch.no_grad():

@@ -50,16 +50,16 @@ def test_actor_update_moves_actions_towards_imagined_reward():
     start = torch.randn(64, 4)
 
     def imagine(start, policy, horizon):  # toy model: z stays put, reward = first action component
-        feats, rewards, log_probs = [start], [], []
+        feats, rewards, entropies = [start], [], []
         for _ in range(horizon):
             dist = policy(feats[-1].detach())
             action = dist.rsample()
-            log_probs.append(dist.log_prob(action))
+            entropies.append(dist.entropy())
             rewards.append(action[:, 0])
             feats.append(feats[-1])
-        return torch.stack(feats), torch.stack(rewards), torch.stack(log_probs)
+        return torch.stack(feats), torch.stack(rewards), torch.stack(entropies)
 
-    mean_action = lambda: learner.actor.mode(learner.actor(start))[:, 0].mean().item()  # noqa: E731
+    mean_action = lambda: learner.actor(start).mode[:, 0].mean().item()  # noqa: E731
     before = mean_action()
     for _ in range(30):
         metrics = learner.update(imagine, start)
