@@ -10,10 +10,13 @@ has them. `checkpoint.pt` in the run directory holds everything but the frozen e
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import hashlib
 import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +30,7 @@ from finetune.logger import Logger
 from finetune.replay import Replay
 
 CHECKPOINT = "checkpoint.pt"
+LOCK = ".lock"
 
 
 class FinetuneError(RuntimeError):
@@ -126,8 +130,32 @@ def evaluate(agent: Agent, env, episodes: int, task: str) -> dict[str, float]:
     return result
 
 
+@contextlib.contextmanager
+def exclusive(logdir: Path) -> Iterator[None]:
+    """Hold an exclusive lock on `logdir` (released when the run ends, also if it is killed): two runs
+    writing one run directory would interleave their replay files and overwrite each other's checkpoint."""
+    logdir.mkdir(parents=True, exist_ok=True)
+    with open(logdir / LOCK, "a+") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.seek(0)
+            raise FinetuneError(f"{logdir} is in use by another run (pid {lock.read().strip() or '?'}): wait for it "
+                                "to finish or pass another --logdir") from None
+        lock.truncate(0)
+        lock.write(str(os.getpid()))
+        lock.flush()
+        yield
+
+
 def train(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: bool = True) -> dict[str, float]:
     """Run (or resume) fine-tuning in cfg.logdir until cfg.steps env steps; returns the last evaluation."""
+    with exclusive(Path(cfg.logdir)):
+        return run(cfg, pretrained, progress)
+
+
+def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> dict[str, float]:
+    """The loop itself, in a run directory this process holds the lock of."""
     from finetune.envs import make_env
 
     logdir = Path(cfg.logdir)
@@ -147,7 +175,6 @@ def train(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: b
     checkpoint = logdir / CHECKPOINT
     if checkpoint.exists():
         counters = load_checkpoint(checkpoint, agent, cfg, fingerprint)
-    logdir.mkdir(parents=True, exist_ok=True)
     (logdir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
 
     # a resumed run reseeds from its progress, so it does not replay the same random streams

@@ -9,7 +9,7 @@ import torch
 
 from finetune.cli import main
 from finetune.config import load_config
-from finetune.train import CHECKPOINT, build_agent, export_fingerprint, load_checkpoint, train
+from finetune.train import CHECKPOINT, build_agent, exclusive, export_fingerprint, load_checkpoint, train
 from model.export import export_frozen
 from model.world_model import WorldModel
 
@@ -70,6 +70,17 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     other = export_frozen(WorldModel(**export_sizes), tmp_path / "other-export")
     assert main(run + ["--pretrained", str(other)]) == 2
     assert "another --pretrained export" in capsys.readouterr().err
+
+
+def test_a_run_directory_in_use_is_refused(export_dir, tmp_path, capsys):
+    logdir = tmp_path / "run"
+    run = ["--config", "configs/finetune/demo.yaml", "--steps", "40", "--pretrained", str(export_dir)]
+    run += tiny_run_settings(logdir, time_limit=10, prefill=20, eval_episodes=1)
+    with exclusive(logdir):  # another run holds the directory
+        assert main(run) == 2
+        assert "is in use by another run" in capsys.readouterr().err
+        assert not (logdir / CHECKPOINT).exists()
+    assert main(run) == 0  # free again once that run ends
 
 
 @pytest.mark.parametrize("task, repeat, episode, steps", SUITES, ids=[s[0].split("_")[0] for s in SUITES])
