@@ -4,11 +4,13 @@
     python bench/bench_learning.py --agent hauwm --pretrained DIR --minutes 60
     python bench/bench_learning.py --minutes 2 --logdir /tmp/quick   # a smoke run
     python bench/bench_learning.py --set model_lr=6e-4 --set actor_lr=2e-4 --set critic_lr=2e-4
+    python bench/bench_learning.py --plot runs/a runs/b --out curve.png  # redraw finished runs together
 
 Runs `finetune.train.train` in chunks of `--chunk` env steps (each chunk resumes the last from its
 checkpoint) until the wall-clock budget is spent, with small networks that fit a CPU. Then it plays
 random-policy episodes for the baseline, prints a table and draws eval return against env steps
-(`learning_curve.png` in the log directory). Settings and machine are printed with the figures.
+(`learning_curve.png` in the log directory; `--plot` draws several finished runs of one task in one
+figure). Settings and machine are printed with the figures.
 """
 
 from __future__ import annotations
@@ -76,6 +78,33 @@ def plot_curves(curves: dict[str, list[tuple[int, float]]], baseline: list[float
     fig.savefig(path, dpi=120)
 
 
+def read_evals(logdir: Path) -> list[tuple[int, float]]:
+    with open(logdir / "eval.csv") as f:
+        return [(int(r["env_step"]), float(r["return"])) for r in csv.DictReader(f)]
+
+
+def report(logdirs: list[Path], out: Path, minutes: float | None = None) -> None:
+    """Random-policy baseline, a table of eval returns (one column per run) and the curve PNG."""
+    configs = [load_config(logdir / "config.yaml") for logdir in logdirs]
+    task, action_repeat = configs[0].task, configs[0].action_repeat
+    baseline = random_returns(task, action_repeat, episodes=10)
+    curves = {f"{c.agent} agent, seed {c.seed} ({c.eval_episodes} eval episodes)": read_evals(d)
+              for c, d in zip(configs, logdirs)}
+    print(f"\nrandom policy: {np.mean(baseline):.1f} ± {np.std(baseline):.1f} (10 episodes, action repeat {action_repeat})")
+    steps = sorted({step for points in curves.values() for step, _ in points})
+    print(f"{'env steps':>10} " + " ".join(f"{'seed ' + str(c.seed):>10}" for c in configs))
+    for step in steps:
+        row = [dict(points).get(step) for points in curves.values()]
+        print(f"{step:>10} " + " ".join(f"{'—' if r is None else f'{r:.1f}':>10}" for r in row))
+    for c, points in zip(configs, curves.values()):
+        best = max(ret for _, ret in points)
+        print(f"seed {c.seed}: best eval return {best:.1f} = {best / max(np.mean(baseline), 1e-9):.1f}× the random "
+              f"policy's mean; last {points[-1][1]:.1f}")
+    budget = f", {minutes:.0f} min" if minutes is not None else ""
+    plot_curves(curves, baseline, f"{task}, shared CPU{budget}", out)
+    print(f"curve: {out}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="dmc_cartpole_swingup")
@@ -86,7 +115,12 @@ def main() -> None:
     parser.add_argument("--logdir", default="runs/bench_learning")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting")
+    parser.add_argument("--plot", nargs="+", type=Path, metavar="LOGDIR", help="only redraw these finished runs")
+    parser.add_argument("--out", type=Path, help="PNG path (default: LOGDIR/learning_curve.png)")
     args = parser.parse_args()
+    if args.plot:
+        report(args.plot, args.out or args.plot[0] / "learning_curve.png")
+        return
 
     settings = {**CPU_SETTINGS, **dict(parse_override(text) for text in args.set)}
     cfg = load_config(None, dict(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir, steps=0, **settings))
@@ -100,23 +134,8 @@ def main() -> None:
         cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)
         train(cfg, args.pretrained, progress=False)
         print(f"{(time.perf_counter() - start) / 60:.1f} min: {cfg.steps} env steps", flush=True)
-
-    baseline = random_returns(args.task, cfg.action_repeat, episodes=10)
-    with open(Path(args.logdir) / "eval.csv") as f:
-        evals = [(int(r["env_step"]), float(r["return"])) for r in csv.DictReader(f)]
-    print(f"\nrandom policy: {np.mean(baseline):.1f} ± {np.std(baseline):.1f} (10 episodes)")
-    print(f"{'env steps':>10} {'eval return':>12}")
-    for step, ret in evals:
-        print(f"{step:>10} {ret:>12.1f}")
-    best = max(ret for _, ret in evals)
-    minutes = (time.perf_counter() - start) / 60
-    print(f"best eval return {best:.1f} = {best / max(np.mean(baseline), 1e-9):.1f}× the random policy's; "
-          f"{minutes:.1f} min in all")
-
-    path = Path(args.logdir) / "learning_curve.png"
-    plot_curves({f"{args.agent} agent (eval, {cfg.eval_episodes} episodes)": evals}, baseline,
-                f"{args.task}, shared CPU, {minutes:.0f} min", path)
-    print(f"curve: {path}")
+    logdir = Path(args.logdir)
+    report([logdir], args.out or logdir / "learning_curve.png", (time.perf_counter() - start) / 60)
 
 
 if __name__ == "__main__":
