@@ -59,9 +59,9 @@ test: install
 test-all: install
 	$(BIN)/python -m pytest -m "slow or not slow"
 
-# speed figures (minutes); the paper-claim and learning checks take ~10 and ~25 minutes: `make bench-checks`
+# speed figures (minutes); the paper-claim, learning and world-model action checks take ~10, ~25 and ~10 minutes: `make bench-checks`
 BENCH_SPEED := bench/bench_shards.py bench/bench_loader.py bench/bench_pretrain.py bench/bench_envs.py bench/bench_agent.py
-BENCH_CHECKS := bench/bench_pretrain_claim.py bench/bench_learning.py
+BENCH_CHECKS := bench/bench_pretrain_claim.py bench/bench_learning.py bench/bench_model_actions.py
 
 bench: install
 	@for script in $(BENCH_SPEED); do echo "== $$script"; $(BIN)/python $$script || exit 1; done

@@ -88,17 +88,16 @@ def report(logdirs: list[Path], out: Path, minutes: float | None = None) -> None
     configs = [load_config(logdir / "config.yaml") for logdir in logdirs]
     task, action_repeat = configs[0].task, configs[0].action_repeat
     baseline = random_returns(task, action_repeat, episodes=10)
-    curves = {f"{c.agent} agent, seed {c.seed} ({c.eval_episodes} eval episodes)": read_evals(d)
-              for c, d in zip(configs, logdirs)}
+    curves = {f"{d.name}: {c.agent} agent, seed {c.seed}": read_evals(d) for c, d in zip(configs, logdirs)}
     print(f"\nrandom policy: {np.mean(baseline):.1f} ± {np.std(baseline):.1f} (10 episodes, action repeat {action_repeat})")
     steps = sorted({step for points in curves.values() for step, _ in points})
-    print(f"{'env steps':>10} " + " ".join(f"{'seed ' + str(c.seed):>10}" for c in configs))
+    print(f"{'env steps':>10} " + " ".join(f"{d.name:>20}" for d in logdirs))
     for step in steps:
         row = [dict(points).get(step) for points in curves.values()]
-        print(f"{step:>10} " + " ".join(f"{'—' if r is None else f'{r:.1f}':>10}" for r in row))
-    for c, points in zip(configs, curves.values()):
+        print(f"{step:>10} " + " ".join(f"{'—' if r is None else f'{r:.1f}':>20}" for r in row))
+    for d, points in zip(logdirs, curves.values()):
         best = max(ret for _, ret in points)
-        print(f"seed {c.seed}: best eval return {best:.1f} = {best / max(np.mean(baseline), 1e-9):.1f}× the random "
+        print(f"{d.name}: best eval return {best:.1f} = {best / max(np.mean(baseline), 1e-9):.1f}× the random "
               f"policy's mean; last {points[-1][1]:.1f}")
     budget = f", {minutes:.0f} min" if minutes is not None else ""
     plot_curves(curves, baseline, f"{task}, shared CPU{budget}", out)
