@@ -38,11 +38,11 @@ CONSTANT_ACTIONS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 
 def play(env, rng: np.random.Generator, constant: float | None) -> dict[str, np.ndarray]:
     """One episode with uniform random actions (constant None) or a constant action, as a replay entry."""
+    shape = env.action_space.shape
     obs, _ = env.reset()
-    episode = {"obs": [obs], "action": [np.zeros(env.action_space.shape, np.float32)], "reward": [0.0]}
+    episode = {"obs": [obs], "action": [np.zeros(shape, np.float32)], "reward": [0.0]}
     done = False
     while not done:
-        shape = env.action_space.shape
         action = rng.uniform(-1, 1, shape) if constant is None else np.full(shape, constant)
         obs, reward, terminated, truncated, _ = env.step(action.astype(np.float32))
         episode["obs"].append(obs)
