@@ -7,10 +7,10 @@
     python bench/bench_learning.py --plot runs/a runs/b --out curve.png  # redraw finished runs together
 
 Runs `finetune.train.train` in chunks of `--chunk` env steps (each chunk resumes the last from its
-checkpoint) until the wall-clock budget is spent, with small networks that fit a CPU. Then it plays
-random-policy episodes for the baseline, prints a table and draws eval return against env steps
-(`learning_curve.png` in the log directory; `--plot` draws several finished runs of one task in one
-figure). Settings and machine are printed with the figures.
+checkpoint; a --logdir that holds a run goes on from it) until the wall-clock budget is spent, with small
+networks that fit a CPU. Then it plays random-policy episodes for the baseline, prints a table and draws
+eval return against env steps (`learning_curve.png` in the log directory; `--plot` draws several finished
+runs of one task in one figure). Settings and machine are printed with the figures.
 """
 
 from __future__ import annotations
@@ -122,7 +122,9 @@ def main() -> None:
         return
 
     settings = {**CPU_SETTINGS, **dict(parse_override(text) for text in args.set)}
-    cfg = load_config(None, dict(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir, steps=0, **settings))
+    logdir = Path(args.logdir)
+    done = load_config(logdir / "config.yaml").steps if (logdir / "config.yaml").exists() else 0  # a run to go on with
+    cfg = load_config(None, dict(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir, steps=done, **settings))
     if args.agent == "hauwm":  # the new stream takes the export's sizes
         cfg = dataclasses.replace(cfg, deter=None, stoch=None)
     print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs (shared), torch {torch.__version__}, 1 thread")
@@ -133,7 +135,6 @@ def main() -> None:
         cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)
         train(cfg, args.pretrained, progress=False)
         print(f"{(time.perf_counter() - start) / 60:.1f} min: {cfg.steps} env steps", flush=True)
-    logdir = Path(args.logdir)
     report([logdir], args.out or logdir / "learning_curve.png", (time.perf_counter() - start) / 60)
 
 
