@@ -41,20 +41,29 @@ CPU_SETTINGS = dict(
 )
 
 
+def play_episode(env, rng: np.random.Generator, constant: float | None = None) -> dict[str, np.ndarray]:
+    """One episode of uniform random actions (constant None) or of one constant action, as a replay entry."""
+    shape = env.action_space.shape
+    obs, _ = env.reset()
+    episode = {"obs": [obs], "action": [np.zeros(shape, np.float32)], "reward": [0.0]}
+    done = False
+    while not done:
+        action = (rng.uniform(-1, 1, shape) if constant is None else np.full(shape, constant)).astype(np.float32)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        episode["obs"].append(obs)
+        episode["action"].append(action)
+        episode["reward"].append(float(reward))
+        done = terminated or truncated
+    return {"obs": np.stack(episode["obs"]), "action": np.stack(episode["action"]),
+            "reward": np.asarray(episode["reward"], np.float32)}
+
+
 def random_returns(task: str, action_repeat: int, episodes: int, seed: int = 123) -> list[float]:
     from finetune.envs import make_env
 
     env = make_env(task, seed=seed, action_repeat=action_repeat, fast_render=True)
-    env.action_space.seed(seed)
-    returns = []
-    for _ in range(episodes):
-        env.reset()
-        total, done = 0.0, False
-        while not done:
-            _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
-            total, done = total + float(reward), terminated or truncated
-        returns.append(total)
-    return returns
+    rng = np.random.default_rng(seed)
+    return [float(play_episode(env, rng)["reward"].sum()) for _ in range(episodes)]
 
 
 def plot_curves(curves: dict[str, list[tuple[int, float]]], baseline: list[float], title: str, path: Path) -> None:

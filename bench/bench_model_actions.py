@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.bench_learning import CPU_SETTINGS  # noqa: E402
+from bench.bench_learning import CPU_SETTINGS, play_episode  # noqa: E402
 from finetune.agent import Agent  # noqa: E402
 from finetune.behavior import TruncatedNormal  # noqa: E402
 from finetune.config import load_config  # noqa: E402
@@ -34,23 +34,6 @@ from finetune.envs import make_env  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
 
 CONSTANT_ACTIONS = (-1.0, -0.5, 0.0, 0.5, 1.0)
-
-
-def play(env, rng: np.random.Generator, constant: float | None) -> dict[str, np.ndarray]:
-    """One episode with uniform random actions (constant None) or a constant action, as a replay entry."""
-    shape = env.action_space.shape
-    obs, _ = env.reset()
-    episode = {"obs": [obs], "action": [np.zeros(shape, np.float32)], "reward": [0.0]}
-    done = False
-    while not done:
-        action = rng.uniform(-1, 1, shape) if constant is None else np.full(shape, constant)
-        obs, reward, terminated, truncated, _ = env.step(action.astype(np.float32))
-        episode["obs"].append(obs)
-        episode["action"].append(action.astype(np.float32))
-        episode["reward"].append(float(reward))
-        done = terminated or truncated
-    return {"obs": np.stack(episode["obs"]), "action": np.stack(episode["action"]),
-            "reward": np.asarray(episode["reward"], np.float32)}
 
 
 def constant_policy(value: float):
@@ -91,8 +74,8 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     replay = Replay(None, cfg.replay_capacity, rng)
     for _ in range(args.episodes):
-        replay.add(play(env, rng, None))
-    real = [float(play(env, rng, value)["reward"][1:].mean()) for value in CONSTANT_ACTIONS]
+        replay.add(play_episode(env, rng))
+    real = [float(play_episode(env, rng, value)["reward"][1:].mean()) for value in CONSTANT_ACTIONS]
     data_reward = np.mean([ep["reward"][1:].mean() for ep in replay.episodes])
     print(f"reward per agent step, real episode of each constant action {CONSTANT_ACTIONS}: "
           f"{[round(r, 2) for r in real]} (random-action data: {data_reward:.2f})")
