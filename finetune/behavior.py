@@ -115,6 +115,10 @@ class Critic(nn.Module):
         return self.net(feat).squeeze(-1)
 
 
+# |tanh μ| above this means tanh' = 1 − tanh² μ < 2e-3: the dynamics-backprop gradient that reaches μ has all
+# but vanished, and an actor whose loc sits there on every state no longer moves (logged as actor_saturated)
+SATURATED = 0.999
+
 # imagine(start, policy, horizon) -> (feats [H+1, N, F], rewards [H, N], policy entropies [H, N])
 Imagine = Callable[[object, Callable[[torch.Tensor], TruncatedNormal], int], tuple[torch.Tensor, ...]]
 
@@ -154,9 +158,10 @@ class ActorCritic(nn.Module):
         with torch.no_grad():
             for target, online in zip(self.target_critic.parameters(), self.critic.parameters()):
                 target.lerp_(online, self.target_fraction)
+            saturated = (self.actor(feats[:-1]).loc.abs() > SATURATED).float().mean()
         return {
             "actor_loss": actor_loss.item(), "critic_loss": critic_loss.item(),
             "imagined_reward": rewards.mean().item(), "imagined_return": returns.mean().item(),
             "actor_entropy": entropy.mean().item(), "actor_grad_norm": actor_norm.item(),
-            "critic_grad_norm": critic_norm.item(),
+            "critic_grad_norm": critic_norm.item(), "actor_saturated": saturated.item(),
         }

@@ -65,3 +65,20 @@ def test_actor_update_moves_actions_towards_imagined_reward():
         metrics = learner.update(imagine, start)
     assert mean_action() > before + 0.2
     assert set(metrics) >= {"actor_loss", "critic_loss", "imagined_return"}
+
+
+def test_actor_saturation_is_reported():
+    """actor_saturated: the share of imagined states whose loc tanh(μ) is within 1e-3 of a bound."""
+    torch.manual_seed(0)
+    learner = ActorCritic(feat_dim=4, action_dim=1, units=32, horizon=3)
+    start = torch.randn(64, 4)
+
+    def imagine(start, policy, horizon):  # toy model: z stays put, no reward
+        feats = [start] * (horizon + 1)
+        dists = [policy(f) for f in feats[:-1]]
+        return torch.stack(feats), torch.zeros(horizon, len(start)), torch.stack([d.entropy() for d in dists])
+
+    assert learner.update(imagine, start)["actor_saturated"] == 0.0  # at init tanh μ is near 0
+    with torch.no_grad():
+        learner.actor.net[-1].bias[0] = 20.0  # μ ≈ 20 on every state: tanh' ≈ 1e-17
+    assert learner.update(imagine, start)["actor_saturated"] == 1.0
