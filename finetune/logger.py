@@ -1,8 +1,8 @@
 """Run logs: one CSV per kind of record (`train.csv`, `episodes.csv`, `eval.csv`) and TensorBoard scalars.
 
 Each CSV row is one record with `env_step` first; a resumed run appends to the same files, and a record
-with a column the file lacks widens its header (older rows get empty cells) rather than losing the column. TensorBoard
-tags are `<kind>/<name>` (e.g. `eval/return`, `train/model_loss`), written to the run directory.
+with a column the file lacks widens its header (older rows get empty cells) rather than losing the column.
+TensorBoard tags are `<kind>/<name>` (e.g. `eval/return`, `train/model_loss`), written to the run directory.
 """
 
 from __future__ import annotations
@@ -23,25 +23,24 @@ class Logger:
     def write(self, kind: str, env_step: int, values: dict[str, float]) -> None:
         row = {"env_step": env_step, **values}
         path = self.logdir / f"{kind}.csv"
-        rows, header = [], []
+        header = []
         if path.exists():
             with path.open(newline="") as f:
                 header = next(csv.reader(f), [])
-        if header and any(key not in header for key in row):
-            # a column this file has not seen (a run resumed by a newer version): widen the header
-            with path.open(newline="") as f:
-                rows = list(csv.DictReader(f))
-            header += [key for key in row if key not in header]
-        if rows or not header:
+        if header and all(key in header for key in row):
+            with path.open("a", newline="") as f:
+                csv.DictWriter(f, fieldnames=header, restval="").writerow(row)
+        else:  # a new file, or a column this file has not seen (a run resumed by a newer version)
+            rows = []
+            if header:
+                with path.open(newline="") as f:
+                    rows = list(csv.DictReader(f))
             tmp = path.with_suffix(".csv.tmp")
             with tmp.open("w", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=header or list(row), restval="")
+                writer = csv.DictWriter(f, fieldnames=header + [key for key in row if key not in header], restval="")
                 writer.writeheader()
                 writer.writerows([*rows, row])
             os.replace(tmp, path)
-        else:
-            with path.open("a", newline="") as f:
-                csv.DictWriter(f, fieldnames=header, restval="").writerow(row)
         for name, value in values.items():
             self.writer.add_scalar(f"{kind}/{name}", value, env_step)
         self.writer.flush()

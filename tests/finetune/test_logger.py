@@ -24,3 +24,11 @@ def test_rows_append_and_a_new_column_widens_the_header(tmp_path):
         {"env_step": "30", "loss": "", "extra": "0.25"},
     ]
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_a_header_only_file_is_widened_too(tmp_path):
+    (tmp_path / "eval.csv").write_text("env_step,return\n")
+    logger = Logger(tmp_path)
+    logger.write("eval", 5, {"return": 2.0, "success_rate": 1.0})
+    logger.close()
+    assert read(tmp_path / "eval.csv") == [{"env_step": "5", "return": "2.0", "success_rate": "1.0"}]
