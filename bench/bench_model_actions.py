@@ -45,7 +45,7 @@ def constant_policy(value: float):
 
 @torch.no_grad()
 def imagined_rewards(agent: Agent, batch: dict[str, torch.Tensor]) -> list[float]:
-    _, latent, _ = agent.world_model.loss(batch)
+    latent, _ = agent.world_model.observe(batch["obs"], batch["action"])  # posterior states, no decoder
     rewards = []
     for value in CONSTANT_ACTIONS:
         torch.manual_seed(1)  # the same prior samples for every action
