@@ -73,7 +73,7 @@ def plot_curves(curves: dict[str, list[tuple[int, float]]], baseline: list[float
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig, ax = plt.subplots(figsize=(9, 3.5))
     for label, points in curves.items():
         ax.plot(*zip(*points), marker="o", label=label)
     mean, std = np.mean(baseline), np.std(baseline)
@@ -82,7 +82,7 @@ def plot_curves(curves: dict[str, list[tuple[int, float]]], baseline: list[float
     ax.set_xlabel("env steps (frames)")
     ax.set_ylabel("episode return")
     ax.set_title(title)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1))  # outside: runs overlap late
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
