@@ -92,6 +92,19 @@ def read_evals(logdir: Path) -> list[tuple[int, float]]:
         return [(int(r["env_step"]), float(r["return"])) for r in csv.DictReader(f)]
 
 
+def summarize(name: str, points: list[tuple[int, float]], baseline: list[float], late: int = 20_000) -> str:
+    """One line per run: best and last eval, and how the evals from `late` env steps on compare with the
+    random policy (their mean, and how many lie above its mean + 1 std)."""
+    mean, bar = np.mean(baseline), np.mean(baseline) + np.std(baseline)
+    best = max(ret for _, ret in points)
+    line = f"{name}: best {best:.1f} = {best / max(mean, 1e-9):.1f}× random mean; last {points[-1][1]:.1f} at {points[-1][0]}"
+    later = [ret for step, ret in points if step >= late]
+    if later:
+        above = sum(ret > bar for ret in later)
+        line += f"; evals from {late}: mean {np.mean(later):.1f}, {above} of {len(later)} above random mean + std ({bar:.1f})"
+    return line
+
+
 def report(logdirs: list[Path], out: Path, minutes: float | None = None) -> None:
     """Random-policy baseline, a table of eval returns (one column per run) and the curve PNG."""
     configs = [load_config(logdir / "config.yaml") for logdir in logdirs]
@@ -105,9 +118,7 @@ def report(logdirs: list[Path], out: Path, minutes: float | None = None) -> None
         row = [dict(points).get(step) for points in curves.values()]
         print(f"{step:>10} " + " ".join(f"{'—' if r is None else f'{r:.1f}':>20}" for r in row))
     for d, points in zip(logdirs, curves.values()):
-        best = max(ret for _, ret in points)
-        print(f"{d.name}: best eval return {best:.1f} = {best / max(np.mean(baseline), 1e-9):.1f}× the random "
-              f"policy's mean; last {points[-1][1]:.1f}")
+        print(summarize(d.name, points, baseline))
     budget = f", {minutes:.0f} min" if minutes is not None else ""
     plot_curves(curves, baseline, f"{task}, shared CPU{budget}", out)
     print(f"curve: {out}")
