@@ -24,7 +24,7 @@ class Agent(nn.Module):
         self.world_model = WorldModel(cfg, action_dim, frozen, k1_embedding)
         self.behavior = ActorCritic(
             self.world_model.feature_dim, action_dim, cfg.units, cfg.horizon, cfg.gamma, cfg.lam, cfg.actor_lr,
-            cfg.critic_lr, cfg.entropy_scale, cfg.target_fraction, cfg.grad_clip)
+            cfg.critic_lr, cfg.entropy_scale, cfg.target_fraction, cfg.grad_clip, layer_norm=cfg.layer_norm)
         self.action_dim = action_dim
 
     @property

@@ -15,6 +15,12 @@ reward head predicts for the state reached after action a_{t-1}, v the critic, v
     target     v' ← (1 − τ) v' + τ v after every update                                   (τ 0.02)
 
 Actor and critic are MLPs with 2 hidden layers of 400 ELU units; both are trained with Adam at 8e-5.
+Each hidden layer has a LayerNorm before its ELU (`layer_norm`, on by default; not in the paper's Table 3).
+Without it the HAUWM agent's critic diverged in every CPU learning run: the frozen stream, imagining
+open-loop on frames it never saw in pre-training, carries ŝ_t away from its posterior states step by
+step, and TD bootstrapping on those ever-more-distant states let the critic's loss grow ~2× every ~400
+updates (bench/README.md). LayerNorm in the hidden layers is what makes TD stable in Gallici et al.
+(2025), "Simplifying Deep Temporal Difference Learning", and DreamerV3 uses it in every MLP.
 """
 
 from __future__ import annotations
@@ -28,11 +34,13 @@ from torch import nn
 from torch.distributions import Distribution
 
 
-def mlp(in_dim: int, out_dim: int, units: int, layers: int = 2) -> nn.Sequential:
-    """`layers` hidden layers of `units` ELU units, then a linear output."""
+def mlp(in_dim: int, out_dim: int, units: int, layers: int = 2, layer_norm: bool = False) -> nn.Sequential:
+    """`layers` hidden layers of `units` ELU units (each with a LayerNorm before the ELU if `layer_norm`),
+    then a linear output."""
     modules: list[nn.Module] = []
     for i in range(layers):
-        modules += [nn.Linear(in_dim if i == 0 else units, units), nn.ELU()]
+        modules.append(nn.Linear(in_dim if i == 0 else units, units))
+        modules += [nn.LayerNorm(units), nn.ELU()] if layer_norm else [nn.ELU()]
     modules.append(nn.Linear(units, out_dim))
     return nn.Sequential(*modules)
 
@@ -94,9 +102,9 @@ class TruncatedNormal(Distribution):
 class Actor(nn.Module):
     """π(a|z): DreamerV2's truncated-normal continuous actor, loc tanh(μ) and std in (0.1, 2.1), 1.1 at init."""
 
-    def __init__(self, feat_dim: int, action_dim: int, units: int, min_std: float = 0.1):
+    def __init__(self, feat_dim: int, action_dim: int, units: int, layer_norm: bool = True, min_std: float = 0.1):
         super().__init__()
-        self.net = mlp(feat_dim, 2 * action_dim, units)
+        self.net = mlp(feat_dim, 2 * action_dim, units, layer_norm=layer_norm)
         self.min_std = min_std
 
     def forward(self, feat: torch.Tensor) -> TruncatedNormal:
@@ -107,9 +115,9 @@ class Actor(nn.Module):
 class Critic(nn.Module):
     """v(z): the expected λ-return from a latent state."""
 
-    def __init__(self, feat_dim: int, units: int):
+    def __init__(self, feat_dim: int, units: int, layer_norm: bool = True):
         super().__init__()
-        self.net = mlp(feat_dim, 1, units)
+        self.net = mlp(feat_dim, 1, units, layer_norm=layer_norm)
 
     def forward(self, feat: torch.Tensor) -> torch.Tensor:
         return self.net(feat).squeeze(-1)
@@ -126,10 +134,11 @@ Imagine = Callable[[object, Callable[[torch.Tensor], TruncatedNormal], int], tup
 class ActorCritic(nn.Module):
     def __init__(self, feat_dim: int, action_dim: int, units: int, horizon: int = 15, gamma: float = 0.99,
                  lam: float = 0.95, actor_lr: float = 8e-5, critic_lr: float = 8e-5, entropy_scale: float = 1e-4,
-                 target_fraction: float = 0.02, grad_clip: float = 100.0, adam_eps: float = 1e-5):
+                 target_fraction: float = 0.02, grad_clip: float = 100.0, adam_eps: float = 1e-5,
+                 layer_norm: bool = True):
         super().__init__()
-        self.actor = Actor(feat_dim, action_dim, units)
-        self.critic = Critic(feat_dim, units)
+        self.actor = Actor(feat_dim, action_dim, units, layer_norm)
+        self.critic = Critic(feat_dim, units, layer_norm)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=actor_lr, eps=adam_eps)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=critic_lr, eps=adam_eps)

@@ -59,6 +59,7 @@ class FinetuneConfig:
     entropy_scale: float = 1e-4
     target_fraction: float = 0.02
     grad_clip: float = 100.0
+    layer_norm: bool = True  # LayerNorm before each ELU of actor and critic; not in Table 3 (docs/finetuning.md)
 
 
 class ConfigError(ValueError):

@@ -90,9 +90,9 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
     if state["export_sha256"] != fingerprint:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the same export or use another --logdir")
-    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units"):
-        if state["config"][key] != getattr(cfg, key):
-            raise FinetuneError(f"{path} was written by a run with {key}={state['config'][key]!r}, this run has "
+    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm"):
+        if state["config"].get(key) != getattr(cfg, key):  # .get: a checkpoint older than the setting
+            raise FinetuneError(f"{path} was written by a run with {key}={state['config'].get(key)!r}, this run has "
                                 f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
     missing, unexpected = agent.load_state_dict(state["agent"], strict=False)
     missing = [k for k in missing if not k.startswith("world_model.frozen.")]

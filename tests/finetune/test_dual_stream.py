@@ -87,3 +87,14 @@ def test_imagination_advances_the_frozen_stream_with_its_ensemble_mean(export_di
         deter, means, _ = frozen.img_step(state, wm.k1_embedding.expand(n, -1))
     expected = torch.cat([deter, means.mean(0)], -1)
     assert torch.allclose(feats[1, :, : frozen.feature_dim], expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("layer_norm", [True, False])
+def test_layer_norm_setting_reaches_actor_and_critic_only(export_dir, tiny_config, layer_norm):
+    """`layer_norm` puts a LayerNorm before each hidden ELU of actor, critic and its target; the world
+    model's reward head stays a plain MLP either way."""
+    agent = make_agent(tiny_config(agent="scratch", layer_norm=layer_norm), export_dir)
+    behavior = agent.behavior
+    for net in (behavior.actor.net, behavior.critic.net, behavior.target_critic.net):
+        assert sum(isinstance(m, torch.nn.LayerNorm) for m in net) == (2 if layer_norm else 0)
+    assert not any(isinstance(m, torch.nn.LayerNorm) for m in agent.world_model.reward)
