@@ -92,6 +92,15 @@ def read_evals(logdir: Path) -> list[tuple[int, float]]:
         return [(int(r["env_step"]), float(r["return"])) for r in csv.DictReader(f)]
 
 
+def critic_losses(logdir: Path, every: int = 10_000) -> str:
+    """The critic's loss from train.csv at every `every` env steps: a loss that keeps doubling is a critic
+    diverging (the plain-MLP critic of the HAUWM agent did; see layer_norm in finetune/behavior.py)."""
+    with open(logdir / "train.csv") as f:
+        rows = [(int(r["env_step"]), float(r["critic_loss"])) for r in csv.DictReader(f)]
+    picked = [next(loss for step, loss in rows if step >= mark) for mark in range(every, rows[-1][0] + 1, every)]
+    return ", ".join(f"{(i + 1) * every // 1000}k: {loss:.3g}" for i, loss in enumerate(picked))
+
+
 def summarize(name: str, points: list[tuple[int, float]], baseline: list[float], late: int = 20_000) -> str:
     """One line per run: best and last eval, and how the evals from `late` env steps on compare with the
     random policy (their mean, and how many lie above its mean + 1 std)."""
@@ -119,6 +128,7 @@ def report(logdirs: list[Path], out: Path, minutes: float | None = None) -> None
         print(f"{step:>10} " + " ".join(f"{'—' if r is None else f'{r:.1f}':>20}" for r in row))
     for d, points in zip(logdirs, curves.values()):
         print(summarize(d.name, points, baseline))
+        print(f"  critic loss (train.csv) {critic_losses(d)}")
     budget = f", {minutes:.0f} min" if minutes is not None else ""
     plot_curves(curves, baseline, f"{task}, shared CPU{budget}", out)
     print(f"curve: {out}")
