@@ -8,9 +8,11 @@
 
 Runs `finetune.train.train` in chunks of `--chunk` env steps (each chunk resumes the last from its
 checkpoint; a --logdir that holds a run goes on from it) until the wall-clock budget is spent, with small
-networks that fit a CPU. Then it plays random-policy episodes for the baseline, prints a table and draws
-eval return against env steps (`learning_curve.png` in the log directory; `--plot` draws several finished
-runs of one task in one figure). Settings and machine are printed with the figures.
+networks that fit a CPU. Then it plays random-policy episodes for the baseline, prints a table of eval
+returns, a summary per run (best, last, the evals from 20k env steps against the random policy) and the
+critic's loss every 10k env steps, and draws eval return against env steps (`learning_curve.png` in the
+log directory; `--plot` draws several finished runs of one task in one figure). Settings and machine are
+printed with the figures.
 """
 
 from __future__ import annotations
@@ -95,10 +97,12 @@ def read_evals(logdir: Path) -> list[tuple[int, float]]:
 def critic_losses(logdir: Path, every: int = 10_000) -> str:
     """The critic's loss from train.csv at every `every` env steps: a loss that keeps doubling is a critic
     diverging (the plain-MLP critic of the HAUWM agent did; see layer_norm in finetune/behavior.py)."""
+    if not (logdir / "train.csv").exists():
+        return "— (no updates yet)"
     with open(logdir / "train.csv") as f:
         rows = [(int(r["env_step"]), float(r["critic_loss"])) for r in csv.DictReader(f)]
     picked = [next(loss for step, loss in rows if step >= mark) for mark in range(every, rows[-1][0] + 1, every)]
-    return ", ".join(f"{(i + 1) * every // 1000}k: {loss:.3g}" for i, loss in enumerate(picked))
+    return ", ".join(f"{(i + 1) * every // 1000}k: {loss:.3g}" for i, loss in enumerate(picked)) or "— (under 10k env steps)"
 
 
 def summarize(name: str, points: list[tuple[int, float]], baseline: list[float], late: int = 20_000) -> str:
@@ -159,7 +163,7 @@ def main() -> None:
         cfg = dataclasses.replace(cfg, deter=None, stoch=None)
     print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs (shared), torch {torch.__version__}, 1 thread")
     print(f"task {args.task}, agent {args.agent}, budget {args.minutes} min, "
-          f"settings { {key: getattr(cfg, key) for key in settings} }", flush=True)
+          f"settings { {key: getattr(cfg, key) for key in (*settings, 'layer_norm')} }", flush=True)
     start = time.perf_counter()
     while time.perf_counter() - start < args.minutes * 60:
         cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)
