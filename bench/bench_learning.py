@@ -102,7 +102,7 @@ def critic_losses(logdir: Path, every: int = 10_000) -> str:
     with open(logdir / "train.csv") as f:
         rows = [(int(r["env_step"]), float(r["critic_loss"])) for r in csv.DictReader(f)]
     picked = [next(loss for step, loss in rows if step >= mark) for mark in range(every, rows[-1][0] + 1, every)]
-    return ", ".join(f"{(i + 1) * every // 1000}k: {loss:.3g}" for i, loss in enumerate(picked)) or "— (under 10k env steps)"
+    return ", ".join(f"{(i + 1) * every // 1000}k: {loss:.3g}" for i, loss in enumerate(picked)) or f"— (under {every // 1000}k env steps)"
 
 
 def summarize(name: str, points: list[tuple[int, float]], baseline: list[float], late: int = 20_000) -> str:
