@@ -32,8 +32,9 @@ from bench.bench_learning import play_episode  # noqa: E402
 from bench.bench_model_actions import constant_policy  # noqa: E402
 from finetune.config import load_config  # noqa: E402
 from finetune.envs import make_env  # noqa: E402
+from finetune.pretrained import PretrainedError  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
-from finetune.train import build_agent  # noqa: E402
+from finetune.train import FinetuneError, build_agent  # noqa: E402
 
 
 def drift_table(features: torch.Tensor, deter: int) -> list[tuple[float, float]]:
@@ -57,12 +58,15 @@ def main() -> None:
     torch.set_num_threads(min(4, os.cpu_count() or 1))
 
     env = make_env(args.task, seed=args.seed, action_repeat=args.action_repeat, fast_render=True)
+    cfg = load_config(None, dict(task=args.task, agent="hauwm", action_repeat=args.action_repeat, device="cpu"))
+    try:  # before the episodes, so that a bad export fails at once
+        agent = build_agent(cfg, env.action_space.shape[0], args.pretrained, torch.device("cpu"))
+    except (PretrainedError, FinetuneError) as error:
+        sys.exit(f"error: {error}")
     replay = Replay(None, capacity=10**6, rng=np.random.default_rng(args.seed))
     rng = np.random.default_rng(args.seed)
     for _ in range(args.episodes):
         replay.add(play_episode(env, rng))
-    cfg = load_config(None, dict(task=args.task, agent="hauwm", action_repeat=args.action_repeat, device="cpu"))
-    agent = build_agent(cfg, env.action_space.shape[0], args.pretrained, torch.device("cpu"))
     batch = {key: torch.as_tensor(value) for key, value in replay.sample(args.windows, 16).items()}
     with torch.no_grad():
         latent, _ = agent.world_model.observe(batch["obs"], batch["action"])
