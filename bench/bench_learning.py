@@ -101,8 +101,9 @@ def critic_losses(logdir: Path, every: int = 10_000) -> str:
         return "— (no updates yet)"
     with open(logdir / "train.csv") as f:
         rows = [(int(r["env_step"]), float(r["critic_loss"])) for r in csv.DictReader(f)]
-    picked = [next(loss for step, loss in rows if step >= mark) for mark in range(every, rows[-1][0] + 1, every)]
-    return ", ".join(f"{(i + 1) * every // 1000}k: {loss:.3g}" for i, loss in enumerate(picked)) or f"— (under {every // 1000}k env steps)"
+    marks = range(every, rows[-1][0] + 1, every)  # the first row logged at or after each mark
+    losses = [f"{mark // 1000}k: {next(loss for step, loss in rows if step >= mark):.3g}" for mark in marks]
+    return ", ".join(losses) or f"— (under {every // 1000}k env steps)"
 
 
 def summarize(name: str, points: list[tuple[int, float]], baseline: list[float], late: int = 20_000) -> str:
