@@ -2,9 +2,9 @@
 
 `load_pretrained(DIR)` reads `DIR/config.json` and `DIR/weights.safetensors` through
 `model.export.load_frozen` (JSON and safetensors only: nothing is unpickled), then checks what
-fine-tuning relies on — schema version, tensor names and shapes, the feature size, the temporal
-embedding's convention (mode, dim, reference length) and the image normalisation — and freezes every
-parameter (requires_grad False, eval mode). Every failure is a `PretrainedError` naming the file and
+fine-tuning relies on — schema version (1 or 2), the world_model settings (sizes and the temporal
+embedding's convention: mode, dim, reference length), tensor names and shapes, the feature size and the
+image normalisation — and freezes every parameter (requires_grad False, eval mode). Every failure is a `PretrainedError` naming the file and
 what to do.
 
 `k1_embedding(model)` builds the conditioning of the frozen stream, Δt^e_{k=1}, the way pre-training
@@ -21,7 +21,6 @@ import torch
 
 from model.export import NORMALISATION, ExportError, FrozenWorldModel, load_frozen, read_config
 from model.networks import IMAGE_SHAPE
-from model.temporal import MODES
 
 
 class PretrainedError(ValueError):
@@ -46,10 +45,7 @@ def load_pretrained(directory: str | Path, device: torch.device | str = "cpu") -
 
 
 def _check_convention(config: dict, path: Path) -> None:
-    if config.get("temporal_mode") not in MODES:
-        raise PretrainedError(f"{path}: temporal_mode {config.get('temporal_mode')!r} is not one of {MODES}")
-    if not (isinstance(config.get("reference_length"), (int, float)) and config["reference_length"] > 0):
-        raise PretrainedError(f"{path}: reference_length must be a positive number, got {config.get('reference_length')!r}")
+    """What the world_model settings (checked by read_config) do not cover: the frames fine-tuning feeds in."""
     if list(config.get("image_shape", IMAGE_SHAPE)) != list(IMAGE_SHAPE):
         raise PretrainedError(f"{path}: image_shape {config['image_shape']} differs from the {list(IMAGE_SHAPE)} "
                               "frames the environments give")

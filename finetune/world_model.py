@@ -45,6 +45,7 @@ from torch import nn
 
 from finetune.behavior import mlp
 from finetune.config import FinetuneConfig
+from model.config import WorldModelConfig
 from model.losses import gaussian_kl, reconstruction_nll
 from model.networks import Decoder, Encoder, preprocess
 from model.rssm import EnsembleRSSM, RSSMState
@@ -84,8 +85,8 @@ class WorldModel(nn.Module):
         else:
             self.encoder = Encoder(width=cfg.encoder_width, embed_dim=32 * cfg.encoder_width)
             posterior_input = self.encoder.embed_dim
-        deter = cfg.deter or (frozen.rssm.deter_dim if frozen is not None else 200)
-        stoch = cfg.stoch or (frozen.rssm.stoch_dim if frozen is not None else 30)
+        deter = cfg.deter or (frozen.rssm.deter_dim if frozen is not None else WorldModelConfig.deter)
+        stoch = cfg.stoch or (frozen.rssm.stoch_dim if frozen is not None else WorldModelConfig.stoch)
         self.rssm = EnsembleRSSM(posterior_input, action_dim, deter, stoch, cfg.hidden, ensemble=1)
         self.decoder = self._decoder(cfg, frozen)
         self.reward = mlp(self.rssm.feature_dim, 1, cfg.units)

@@ -27,11 +27,11 @@ from model.losses import disagreement
 
 
 def model_label(model: FrozenWorldModel, name: str) -> str:
-    provenance = model.config.get("provenance", {})
+    provenance = model.export_config.get("provenance", {})
     if not provenance:
         return name
     hcu = f"HCU λ₀={provenance['lambda_init']:g}" if provenance.get("hcu") else "no HCU"
-    return f"{name} ({hcu}, M={model.config['ensemble']}, step {provenance.get('global_step', '?')})"
+    return f"{name} ({hcu}, M={model.config.ensemble}, step {provenance.get('global_step', '?')})"
 
 
 @torch.no_grad()
@@ -123,7 +123,7 @@ def analyze(
     seq_len: int = 12, k_max: int | None = None, heads: int = 4, seed: int = 0,
 ) -> list[Path]:
     loaded = [load_frozen(path) for path in models]
-    k_max = k_max or loaded[0].config.get("provenance", {}).get("k_max") or 5
+    k_max = k_max or loaded[0].export_config.get("provenance", {}).get("k_max") or 5
     dataset = SequenceDataset(shard_set(shards, split), batch_size=batch_size, seq_len=seq_len, k_max=k_max,
                               num_workers=0, shuffle=False, seed=seed, batches_per_worker=batches)
     held_out = list(tqdm(dataset, total=batches, desc=f"reading {split} batches", unit="batch"))
@@ -137,7 +137,7 @@ def analyze(
         plot_rollout(data, label, rollout_path)
         written.append(rollout_path)
         results.append({
-            "model": str(path), "label": label, "config": model.config,
+            "model": str(path), "label": label, "config": model.export_config,
             "horizon": horizon_figure_data(model, held_out, k_max, seed),
             "rollout": {key: data[key] for key in ("id", "gaps", "indices", "context_indices", "disagreement")},
         })

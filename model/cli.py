@@ -32,6 +32,7 @@ def lightning_cli(args: list[str]):
 
     from data_pipeline.datamodule import ShardDataModule
     from data_pipeline.loader import read_manifest
+    from model.config import WorldModelConfig
     from model.module import ConfigError, PretrainModule, refuse_other_size
 
     class PretrainCLI(LightningCLI):
@@ -45,7 +46,14 @@ def lightning_cli(args: list[str]):
             ckpt_path = config.get("ckpt_path") if config else None
             if ckpt_path and Path(ckpt_path).is_file():
                 saved = torch.load(ckpt_path, weights_only=True, map_location="cpu").get("hyper_parameters", {})
-                refuse_other_size(saved, config["model"], str(ckpt_path))
+                asked = WorldModelConfig(**config["model"]["world_model"].as_dict())
+                refuse_other_size(saved, asked, str(ckpt_path))
+                if saved and "world_model" not in saved:
+                    raise ConfigError(
+                        f"{ckpt_path} keeps the model sizes flat in its hyper_parameters (written before they moved "
+                        "under model.world_model), so this version cannot resume it; `hauwm pretrain export` still "
+                        "exports it, or resume it with the hauwm version that wrote it"
+                    )
             super()._parse_ckpt_path()
 
         def before_instantiate_classes(self) -> None:
@@ -88,7 +96,7 @@ def export_command(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     model, provenance = world_model_from_checkpoint(args.checkpoint)
     out = export_frozen(model, args.out, provenance)
-    print(f"exported {args.checkpoint} (step {provenance['global_step']}, M={model.config['ensemble']}) to {out}")
+    print(f"exported {args.checkpoint} (step {provenance['global_step']}, M={model.config.ensemble}) to {out}")
     return 0
 
 

@@ -1,8 +1,12 @@
 """The frozen export handed from pre-training to fine-tuning (docs/architecture.md section 4).
 
     DIR/weights.safetensors   the WorldModel's state dict (encoder, rssm, decoder; float32)
-    DIR/config.json           schema_version, the WorldModel constructor arguments (sizes, M, the temporal
-                              embedding's mode, dim and reference length), the image normalisation, provenance
+    DIR/config.json           schema_version 2: the WorldModelConfig under "world_model" (sizes, M, the temporal
+                              embedding's mode, dim and reference length), feature_dim, image_shape, the image
+                              normalisation, provenance
+
+Schema version 1 (exports before WorldModelConfig) held the world_model keys flat at the top level; it is
+still read, and read_config hands both versions back in the version-2 layout.
 
 Loading reads JSON and safetensors only — nothing is unpickled — and checks the schema version and every
 tensor's name and shape against the architecture the config describes.
@@ -18,9 +22,11 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from model.world_model import MODEL_KEYS, WorldModel
+from model.config import ConfigError, WorldModelConfig, saved_settings
+from model.world_model import WorldModel
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 KIND = "hauwm-pretrained-world-model"
 WEIGHTS_FILE = "weights.safetensors"
 CONFIG_FILE = "config.json"
@@ -34,8 +40,12 @@ class ExportError(ValueError):
 class FrozenWorldModel(WorldModel):
     """A WorldModel loaded from an export: every parameter frozen, always in eval mode.
 
-    `config` is the whole config.json (constructor arguments plus normalisation and provenance).
+    `config` is its WorldModelConfig; `export_config` the whole config.json (in the version-2 layout).
     """
+
+    def __init__(self, export_config: dict[str, Any]):
+        super().__init__(WorldModelConfig.from_dict(export_config["world_model"]))
+        self.export_config = export_config
 
     def train(self, mode: bool = True) -> "FrozenWorldModel":
         return super().train(False)
@@ -50,7 +60,7 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
     config = {
         "schema_version": SCHEMA_VERSION,
         "kind": KIND,
-        **model.config,
+        "world_model": model.config.to_dict(),
         "feature_dim": model.rssm.feature_dim,
         "image_shape": [3, 64, 64],
         "normalisation": NORMALISATION,
@@ -61,7 +71,8 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
 
 
 def read_config(export_dir: str | Path) -> dict[str, Any]:
-    """config.json of an export, with its schema version and model keys checked."""
+    """config.json of an export in the version-2 layout (a version-1 file's flat keys moved under
+    "world_model"; "schema_version" stays the file's), with its version and world_model checked."""
     path = Path(export_dir) / CONFIG_FILE
     if not path.is_file():
         raise ExportError(
@@ -72,15 +83,21 @@ def read_config(export_dir: str | Path) -> dict[str, Any]:
         config = json.loads(path.read_text())
     except json.JSONDecodeError as err:
         raise ExportError(f"{path} is not valid JSON ({err}); re-export the checkpoint") from None
-    version = config.get("schema_version")
-    if version != SCHEMA_VERSION:
+    version = config.get("schema_version") if isinstance(config, dict) else None
+    if type(version) is not int or version not in READABLE_VERSIONS:
         raise ExportError(
-            f"{path} has schema_version {version!r}, this code reads version {SCHEMA_VERSION}; "
-            "re-export the checkpoint with this version of hauwm"
+            f"{path} has schema_version {version!r}, this code reads versions {READABLE_VERSIONS}; re-export the "
+            "checkpoint with this version of hauwm, or load it with the version that wrote it"
         )
-    missing = [key for key in MODEL_KEYS if key not in config]
-    if missing:
-        raise ExportError(f"{path} lacks {missing}; re-export the checkpoint with this version of hauwm")
+    if version == 1:
+        flat = saved_settings(config)
+        config = {key: value for key, value in config.items() if key not in flat} | {"world_model": flat}
+    if not isinstance(config.get("world_model"), dict):
+        raise ExportError(f"{path} lacks the \"world_model\" settings; re-export the checkpoint")
+    try:
+        WorldModelConfig.from_dict(config["world_model"])
+    except ConfigError as err:
+        raise ExportError(f"{path}: {err}; re-export the checkpoint with this version of hauwm") from None
     return config
 
 
@@ -94,7 +111,7 @@ def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> F
         tensors = load_file(str(weights_path), device=str(device))
     except (SafetensorError, OSError) as err:
         raise ExportError(f"{weights_path} cannot be read as safetensors ({err}); re-export the checkpoint") from None
-    model = FrozenWorldModel(**{key: config[key] for key in MODEL_KEYS})
+    model = FrozenWorldModel(config)
     expected = {name: tuple(t.shape) for name, t in model.state_dict().items()}
     found = {name: tuple(t.shape) for name, t in tensors.items()}
     problems = [f"missing {name}" for name in expected.keys() - found.keys()]
@@ -110,7 +127,6 @@ def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> F
             + (f" (and {len(problems) - 8} more)" if len(problems) > 8 else "")
         )
     model.load_state_dict(tensors)
-    model.config = config
     return model.to(device).requires_grad_(False).eval()
 
 
@@ -124,10 +140,11 @@ def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dic
     except Exception as err:  # a truncated file, or one holding more than tensors and plain data
         raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit` ({err})") from None
     hparams = state.get("hyper_parameters", {})
-    missing = [key for key in MODEL_KEYS if key not in hparams]
-    if missing:
-        raise ExportError(f"{path} is not a `hauwm pretrain fit` checkpoint (its hyper_parameters lack {missing})")
-    model = WorldModel(**{key: hparams[key] for key in MODEL_KEYS})
+    try:  # the settings under "world_model", or flat in checkpoints written before WorldModelConfig
+        config = WorldModelConfig.from_dict(saved_settings(hparams))
+    except ConfigError as err:
+        raise ExportError(f"{path} is not a `hauwm pretrain fit` checkpoint (its hyper_parameters: {err})") from None
+    model = WorldModel(config)
     prefix = "world_model."
     model.load_state_dict({name[len(prefix):]: t for name, t in state["state_dict"].items() if name.startswith(prefix)})
     log_lambda = state["state_dict"].get("log_lambda")

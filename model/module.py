@@ -21,29 +21,30 @@ Steps whose gradients are not finite are skipped and counted (train/skipped_step
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from typing import Any
 
 import lightning as L
 import torch
 from torch import nn
 
+from model.config import ConfigError, WorldModelConfig, saved_settings
 from model.evaluation import horizon_metrics, horizon_sums
 from model.losses import balanced_kl, disagreement, k_scaled_disagreement, reconstruction_nll
 from model.networks import preprocess
 from model.rssm import Observation, RSSMState
-from model.world_model import MODEL_KEYS, WorldModel
+from model.world_model import WorldModel
 
 
-class ConfigError(ValueError):
-    """A setting or combination of settings that cannot train; the message names the flag and the fix."""
-
-
-def check_settings(ensemble: int, k_max: int, lambda_init: float, kl_balance: float, hcu_target: float) -> None:
-    if ensemble < 1:
-        raise ConfigError(f"model.ensemble must be ≥ 1 (got {ensemble})")
-    if lambda_init > 0 and ensemble < 2:
+def check_settings(
+    world_model: WorldModelConfig, k_max: int, lambda_init: float, kl_balance: float, hcu_target: float
+) -> None:
+    world_model.validate()
+    if lambda_init > 0 and world_model.ensemble < 2:
         raise ConfigError(
-            f"HCU needs an ensemble of at least 2 heads to measure disagreement, but model.ensemble={ensemble}; "
-            "raise --model.ensemble, or set --model.lambda_init 0 to train without HCU"
+            "HCU needs an ensemble of at least 2 heads to measure disagreement, but "
+            f"model.world_model.ensemble={world_model.ensemble}; raise --model.world_model.ensemble, or set "
+            "--model.lambda_init 0 to train without HCU"
         )
     if lambda_init < 0:
         raise ConfigError(f"model.lambda_init must be ≥ 0 (0 turns HCU off), got {lambda_init}")
@@ -55,10 +56,11 @@ def check_settings(ensemble: int, k_max: int, lambda_init: float, kl_balance: fl
         raise ConfigError(f"model.hcu_target must be positive, got {hcu_target}")
 
 
-def refuse_other_size(saved: dict, asked, source: str) -> None:
-    """Raise ConfigError if a checkpoint's model settings (saved hyper-parameters) differ from this run's."""
-    different = [f"{key}: checkpoint {saved[key]!r} vs this run {asked[key]!r}"
-                 for key in MODEL_KEYS if key in saved and saved[key] != asked[key]]
+def refuse_other_size(saved: Mapping[str, Any], asked: WorldModelConfig, source: str) -> None:
+    """Raise ConfigError if a checkpoint's world-model settings (its hyper_parameters) differ from this run's."""
+    asked_settings = asked.to_dict()
+    different = [f"{key}: checkpoint {value!r} vs this run {asked_settings.get(key)!r}"
+                 for key, value in saved_settings(saved).items() if value != asked_settings[key]]
     if different:
         raise ConfigError(
             f"{source} was trained with a different model size ({', '.join(different)}); resume with the "
@@ -69,18 +71,8 @@ def refuse_other_size(saved: dict, asked, source: str) -> None:
 class PretrainModule(L.LightningModule):
     def __init__(
         self,
-        # the world model (model/world_model.py; these define the export's architecture)
-        cnn_width: int = 32,
-        embed_dim: int = 1024,
-        deter: int = 200,
-        stoch: int = 30,
-        hidden: int = 200,
-        ensemble: int = 7,
-        min_std: float = 0.1,
-        max_std: float = 1.0,
-        temporal_mode: str = "relative",
-        temporal_dim: int = 32,
-        reference_length: float = 100.0,
+        # the world model's sizes (model/config.py; they define the export's architecture)
+        world_model: WorldModelConfig = WorldModelConfig(),
         # training (Table 3)
         k_max: int = 5,
         lr: float = 1e-4,
@@ -93,10 +85,13 @@ class PretrainModule(L.LightningModule):
         noise_seed: int = 0,
     ):
         super().__init__()
-        check_settings(ensemble, k_max, lambda_init, kl_balance, hcu_target)
+        if isinstance(world_model, Mapping):  # load_from_checkpoint of a module built without the CLI passes the dict
+            world_model = WorldModelConfig.from_dict(world_model)
+        check_settings(world_model, k_max, lambda_init, kl_balance, hcu_target)
         self.save_hyperparameters()
+        self.save_hyperparameters({"world_model": world_model.to_dict()})  # plain data: weights_only=True loads it
         self.automatic_optimization = False
-        self.world_model = WorldModel(**{key: self.hparams[key] for key in MODEL_KEYS})
+        self.world_model = WorldModel(world_model)
         start = math.log(lambda_init) if lambda_init > 0 else 0.0
         # not trained by backprop: its gradient is set in closed form (dual_step), so DDP leaves it alone
         self.log_lambda = nn.Parameter(torch.tensor(start), requires_grad=False)
@@ -188,7 +183,7 @@ class PretrainModule(L.LightningModule):
             # under 16-mixed the grad scaler skips the step itself and lowers its scale
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        refuse_other_size(checkpoint.get("hyper_parameters", {}), self.hparams, "the checkpoint")
+        refuse_other_size(checkpoint.get("hyper_parameters", {}), self.world_model.config, "the checkpoint")
 
     # validation: open-loop one-jump prediction per gap k (model/evaluation.py)
 

@@ -25,6 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from model.config import WorldModelConfig
+
 
 class RSSMState(NamedTuple):
     deter: torch.Tensor  # [B, deter]
@@ -66,16 +68,19 @@ def _mean_std(raw: torch.Tensor, min_std: float, max_std: float) -> tuple[torch.
 
 
 class EnsembleRSSM(nn.Module):
+    """A building block: the pre-trained WorldModel builds it from its WorldModelConfig (cond_dim = the temporal
+    embedding's size), fine-tuning's action-conditioned stream with cond_dim = the action size and M = 1."""
+
     def __init__(
         self,
         embed_dim: int,
         cond_dim: int,
-        deter: int = 200,
-        stoch: int = 30,
-        hidden: int = 200,
-        ensemble: int = 7,
-        min_std: float = 0.1,
-        max_std: float = 1.0,
+        deter: int,
+        stoch: int,
+        hidden: int,
+        ensemble: int,
+        min_std: float = WorldModelConfig.min_std,
+        max_std: float = WorldModelConfig.max_std,
     ):
         super().__init__()
         if ensemble < 1:

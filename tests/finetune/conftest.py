@@ -6,11 +6,12 @@ import pytest
 import torch
 
 from finetune.config import FinetuneConfig
+from model.config import WorldModelConfig
 from model.export import export_frozen
 from model.world_model import WorldModel
 
 # the small pre-trained model of these tests; the new stream must match its deter + stoch for the decoder
-EXPORT_SIZES = dict(cnn_width=8, embed_dim=64, deter=24, stoch=8, hidden=24, ensemble=3, temporal_dim=8)
+EXPORT_SIZES = WorldModelConfig(cnn_width=8, embed_dim=64, deter=24, stoch=8, hidden=24, ensemble=3, temporal_dim=8)
 
 
 @pytest.fixture(autouse=True)
@@ -21,7 +22,7 @@ def _one_thread():
 @pytest.fixture(scope="session")
 def export_dir(tmp_path_factory):
     torch.manual_seed(0)
-    return export_frozen(WorldModel(**EXPORT_SIZES), tmp_path_factory.mktemp("export"), {"source": "tests"})
+    return export_frozen(WorldModel(EXPORT_SIZES), tmp_path_factory.mktemp("export"), {"source": "tests"})
 
 
 def _tiny_config(**overrides) -> FinetuneConfig:
@@ -37,5 +38,5 @@ def tiny_config():
 
 
 @pytest.fixture
-def export_sizes():
-    return dict(EXPORT_SIZES)
+def export_sizes() -> WorldModelConfig:
+    return EXPORT_SIZES

@@ -67,7 +67,7 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     code = main(run + ["--pretrained", str(export_dir), "--set", "task=dmc_cheetah_run"])
     assert code == 2 and "task='dmc_cartpole_swingup'" in capsys.readouterr().err
     torch.manual_seed(1)
-    other = export_frozen(WorldModel(**export_sizes), tmp_path / "other-export")
+    other = export_frozen(WorldModel(export_sizes), tmp_path / "other-export")
     assert main(run + ["--pretrained", str(other)]) == 2
     assert "another --pretrained export" in capsys.readouterr().err
 

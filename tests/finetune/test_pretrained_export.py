@@ -26,8 +26,8 @@ def test_loads_frozen_with_the_exported_sizes(export_dir, export_sizes):
     assert not model.training and not any(m.training for m in model.modules())
     model.train()  # an agent switching to train mode must not unfreeze or un-eval the export
     assert not model.training
-    assert model.rssm.ensemble == export_sizes["ensemble"]
-    assert model.rssm.feature_dim == export_sizes["deter"] + export_sizes["stoch"]
+    assert model.rssm.ensemble == export_sizes.ensemble
+    assert model.rssm.feature_dim == export_sizes.deter + export_sizes.stoch
 
 
 def test_k1_embedding_follows_the_exported_convention(export_dir):

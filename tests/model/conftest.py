@@ -9,11 +9,12 @@ import pytest
 import torch
 
 from model.cli import main
+from model.config import WorldModelConfig
 
 REPO = Path(__file__).resolve().parents[2]
 TINY_CONFIG = REPO / "configs" / "pretrain" / "tiny.yaml"
 # model sizes small enough for unit tests (the tiny.yaml sizes are used by the CLI runs)
-SMALL = dict(cnn_width=8, embed_dim=32, deter=24, stoch=6, hidden=24, ensemble=3, temporal_dim=8)
+SMALL = WorldModelConfig(cnn_width=8, embed_dim=32, deter=24, stoch=6, hidden=24, ensemble=3, temporal_dim=8)
 # a short run over built_shards: validation has 3 clips, train 18 (5 shards), all with ≥ 24 frames
 RUN_ARGS = ["--data.batch_size", "3", "--data.seq_len", "8", "--data.num_workers", "0", "--data.val_batches", "1",
             "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
@@ -47,8 +48,8 @@ def batch_factory():
 
 
 @pytest.fixture
-def small_sizes() -> dict:
-    return dict(SMALL)
+def small_sizes() -> WorldModelConfig:
+    return SMALL
 
 
 def fit(shards: Path, root: Path, *extra: str) -> int:

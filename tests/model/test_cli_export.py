@@ -45,8 +45,9 @@ def test_export_reproduces_the_trained_module(tiny_run, tiny_export, fake_batch)
     frozen = load_frozen(tiny_export)
     assert isinstance(frozen, FrozenWorldModel) and not frozen.training
     assert not any(p.requires_grad for p in frozen.parameters())
-    config = frozen.config
-    assert config["schema_version"] == 1 and config["ensemble"] == 7 and config["temporal_mode"] == "relative"
+    config = frozen.export_config
+    assert config["schema_version"] == 2 and config["world_model"] == frozen.config.to_dict() == module.world_model.config.to_dict()
+    assert frozen.config.ensemble == 7 and frozen.config.temporal_mode == "relative"
     assert config["normalisation"]["offset"] == -0.5 and config["provenance"]["global_step"] == RUN_STEPS
     with torch.no_grad():
         outputs = []
@@ -75,12 +76,12 @@ def test_export_errors_are_clear(tiny_export, tmp_path):
     wrong_version = tmp_path / "v2"
     shutil.copytree(tiny_export, wrong_version)
     config = json.loads((wrong_version / "config.json").read_text())
-    (wrong_version / "config.json").write_text(json.dumps({**config, "schema_version": 2}))
-    with pytest.raises(ExportError, match="schema_version 2"):
+    (wrong_version / "config.json").write_text(json.dumps({**config, "schema_version": 3}))
+    with pytest.raises(ExportError, match=r"schema_version 3, this code reads versions \(1, 2\); re-export"):
         load_frozen(wrong_version)
     wrong_shape = tmp_path / "shape"
     shutil.copytree(tiny_export, wrong_shape)
-    (wrong_shape / "config.json").write_text(json.dumps({**config, "deter": config["deter"] + 8}))
+    (wrong_shape / "config.json").write_text(json.dumps({**config, "world_model": {**config["world_model"], "deter": config["world_model"]["deter"] + 8}}))
     with pytest.raises(ExportError, match=r"does not match .*config.json.*rssm\.cell"):
         load_frozen(wrong_shape)
     (wrong_shape / "weights.safetensors").unlink()
@@ -91,7 +92,7 @@ def test_export_errors_are_clear(tiny_export, tmp_path):
 @pytest.mark.parametrize(
     ("flags", "message"),
     [
-        (["--model.ensemble", "1"], "HCU needs an ensemble of at least 2 heads"),
+        (["--model.world_model.ensemble", "1"], "HCU needs an ensemble of at least 2 heads"),
         (["--data.k_max", "0"], "k_max"),
         (["--trainer.max_steps", "1", "--data.shards", "/nonexistent/shards"], "/nonexistent/shards does not exist"),
     ],
@@ -104,7 +105,7 @@ def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, 
 
 
 def test_a_checkpoint_of_another_model_size_is_refused(built_shards, tiny_run, tmp_path, capsys):
-    code = fit(built_shards, tmp_path, "--model.deter", "48", "--ckpt_path", str(tiny_run / "checkpoints" / "last.ckpt"))
+    code = fit(built_shards, tmp_path, "--model.world_model.deter", "48", "--ckpt_path", str(tiny_run / "checkpoints" / "last.ckpt"))
     assert code == 2
     assert "different model size (deter: checkpoint 64 vs this run 48)" in capsys.readouterr().err
 

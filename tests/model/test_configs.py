@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 
 import pytest
 import yaml
 
 from model.cli import main
+from model.config import WorldModelConfig
 
 from conftest import REPO  # noqa: I001 (tests/model/conftest.py)
 
@@ -23,6 +25,12 @@ def resolved(capsys, shards, *configs: str) -> dict:
     return yaml.safe_load(capsys.readouterr().out)
 
 
+def lookup(config: dict, dotted: str):
+    for key in dotted.split("."):
+        config = config[key]
+    return config
+
+
 @pytest.fixture(scope="module")
 def ssv2_config(tmp_path_factory) -> dict:
     out = io.StringIO()
@@ -35,16 +43,17 @@ def ssv2_config(tmp_path_factory) -> dict:
 def test_ssv2_holds_table_3(ssv2_config):
     model, data, trainer = ssv2_config["model"], ssv2_config["data"], ssv2_config["trainer"]
     assert (data["batch_size"], model["lr"], trainer["max_steps"]) == (32, 1e-4, 600000)
-    assert (model["ensemble"], data["k_max"]) == (7, 5)
+    assert (model["world_model"]["ensemble"], data["k_max"]) == (7, 5)
     assert (model["lambda_init"], model["lambda_lr"], model["kl_balance"]) == (1.0, 3e-4, 0.8)
-    assert (model["deter"], model["stoch"]) == (200, 30)
+    assert model["world_model"] == dataclasses.asdict(WorldModelConfig())  # the defaults are Table 3's
+    assert (model["world_model"]["deter"], model["world_model"]["stoch"]) == (200, 30)
     assert (trainer["precision"], trainer["strategy"], trainer["devices"]) == ("16-mixed", "ddp", -1)
 
 
 @pytest.mark.parametrize(
     ("overlay", "expected"),
     [
-        ("ssv2-m5.yaml", {"model.ensemble": 5}),
+        ("ssv2-m5.yaml", {"model.world_model.ensemble": 5}),
         ("ablations/no-hcu.yaml", {"model.lambda_init": 0.0}),
         ("ablations/lambda-10.yaml", {"model.lambda_init": 10.0}),
         ("ablations/lambda-0.1.yaml", {"model.lambda_init": 0.1}),
@@ -52,27 +61,28 @@ def test_ssv2_holds_table_3(ssv2_config):
         ("ablations/kmax-1.yaml", {"data.k_max": 1}),
         ("ablations/kmax-2.yaml", {"data.k_max": 2}),
         ("ablations/kmax-10.yaml", {"data.k_max": 10}),
-        ("ablations/apv.yaml", {"model.ensemble": 1, "model.lambda_init": 0.0, "data.k_max": 1}),
+        ("ablations/apv.yaml", {"model.world_model.ensemble": 1, "model.lambda_init": 0.0, "data.k_max": 1}),
     ],
 )
 def test_overlays_change_only_what_they_name(capsys, tmp_path, ssv2_config, overlay, expected):
     base = ssv2_config
     config = resolved(capsys, tmp_path, "ssv2.yaml", overlay)
     for dotted, value in expected.items():
-        group, key = dotted.split(".")
-        assert config[group][key] == value and base[group][key] != value
+        assert lookup(config, dotted) == value and lookup(base, dotted) != value
     assert config["model"]["lr"] == 1e-4 and config["data"]["batch_size"] == 32
+    sizes = dict(config["model"]["world_model"], ensemble=base["model"]["world_model"]["ensemble"])
+    assert sizes == base["model"]["world_model"]  # an overlay naming one size keeps the others
 
 
 def test_tiny_runs_on_cpu(capsys, tmp_path):
     config = resolved(capsys, tmp_path, "tiny.yaml")
-    assert config["trainer"]["accelerator"] == "cpu" and config["model"]["ensemble"] == 7
+    assert config["trainer"]["accelerator"] == "cpu" and config["model"]["world_model"]["ensemble"] == 7
 
 
 def test_every_setting_is_overridable(capsys, tmp_path):
     args = ["fit", "--config", str(CONFIGS / "ssv2.yaml"), "--data.shards", str(tmp_path), "--trainer.max_steps", "50",
-            "--model.hcu_target", "0.3", "--model.temporal_mode", "absolute", "--data.seq_len", "24", "--print_config"]
+            "--model.hcu_target", "0.3", "--model.world_model.temporal_mode", "absolute", "--data.seq_len", "24", "--print_config"]
     assert main(args) == 0
     config = yaml.safe_load(capsys.readouterr().out)
     assert config["trainer"]["max_steps"] == 50 and config["model"]["hcu_target"] == 0.3
-    assert config["model"]["temporal_mode"] == "absolute" and config["data"]["seq_len"] == 24
+    assert config["model"]["world_model"]["temporal_mode"] == "absolute" and config["data"]["seq_len"] == 24

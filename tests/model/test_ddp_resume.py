@@ -12,6 +12,7 @@ import lightning as L
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from model.config import WorldModelConfig
 from model.module import PretrainModule
 
 from conftest import REPO, TINY_CONFIG  # noqa: I001 (tests/model/conftest.py)
@@ -72,9 +73,9 @@ class LossRecorder(L.Callback):
         self.losses[trainer.global_step] = float(trainer.callback_metrics["train/loss"])
 
 
-def train(batches: list[dict], root: Path, sizes: dict, max_steps: int, ckpt_path: str | None = None):
+def train(batches: list[dict], root: Path, sizes: WorldModelConfig, max_steps: int, ckpt_path: str | None = None):
     L.seed_everything(0)
-    module = PretrainModule(**sizes, k_max=5, lambda_lr=0.01)
+    module = PretrainModule(sizes, k_max=5, lambda_lr=0.01)
     recorder = LossRecorder()
     checkpoint = ModelCheckpoint(dirpath=root, save_last=True, every_n_train_steps=4)
     trainer = L.Trainer(max_steps=max_steps, accelerator="cpu", logger=False, enable_progress_bar=False,

@@ -4,6 +4,7 @@ are refused, non-finite steps are skipped and counted."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 
 import lightning as L
@@ -15,7 +16,7 @@ from model.module import ConfigError, PretrainModule
 
 
 def test_lambda_grows_while_the_ensemble_is_too_certain_and_shrinks_once_it_is_not(small_sizes):
-    module = PretrainModule(**small_sizes, hcu_target=1.0, lambda_init=1.0, lambda_lr=0.05)
+    module = PretrainModule(small_sizes, hcu_target=1.0, lambda_init=1.0, lambda_lr=0.05)
     _, dual = module.configure_optimizers()
     values = [module.hcu_weight().item()]
     for _ in range(5):  # k-scaled disagreement 0.1 < target 1.0: λ must grow
@@ -29,12 +30,12 @@ def test_lambda_grows_while_the_ensemble_is_too_certain_and_shrinks_once_it_is_n
 
 
 def test_lambda_starts_at_lambda_init(small_sizes):
-    assert math.isclose(PretrainModule(**small_sizes, lambda_init=10.0).hcu_weight().item(), 10.0, rel_tol=1e-6)
-    assert PretrainModule(**small_sizes, lambda_init=0.0).hcu_weight().item() == 0.0
+    assert math.isclose(PretrainModule(small_sizes, lambda_init=10.0).hcu_weight().item(), 10.0, rel_tol=1e-6)
+    assert PretrainModule(small_sizes, lambda_init=0.0).hcu_weight().item() == 0.0
 
 
 def test_total_loss_is_eq4(small_sizes, fake_batch):
-    module = PretrainModule(**small_sizes, lambda_init=2.0)
+    module = PretrainModule(small_sizes, lambda_init=2.0)
     obs = module.world_model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"])
     terms = module.compute_losses(fake_batch, obs)
     assert all(torch.isfinite(v) and v.dtype == torch.float32 for v in terms.values())
@@ -44,33 +45,35 @@ def test_total_loss_is_eq4(small_sizes, fake_batch):
 
 
 def test_without_hcu_the_loss_is_the_elbo(small_sizes, fake_batch):
-    module = PretrainModule(**small_sizes, lambda_init=0.0)
+    module = PretrainModule(small_sizes, lambda_init=0.0)
     obs = module.world_model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"])
     terms = module.compute_losses(fake_batch, obs)
     assert torch.equal(terms["loss"], terms["pred"])
 
 
 @pytest.mark.parametrize(
-    ("settings", "message"),
+    ("sizes", "settings", "message"),
     [
-        (dict(ensemble=1, lambda_init=1.0), "HCU needs an ensemble of at least 2 heads"),
-        (dict(k_max=0), "k_max"),
-        (dict(lambda_init=-1.0), "lambda_init"),
-        (dict(kl_balance=1.5), "kl_balance"),
+        (dict(ensemble=1), dict(lambda_init=1.0), "HCU needs an ensemble of at least 2 heads"),
+        (dict(deter=0), {}, r"world_model.deter must be ≥ 1, got 0"),
+        (dict(temporal_dim=7), {}, "world_model.temporal_dim must be even"),
+        ({}, dict(k_max=0), "k_max"),
+        ({}, dict(lambda_init=-1.0), "lambda_init"),
+        ({}, dict(kl_balance=1.5), "kl_balance"),
     ],
 )
-def test_bad_settings_are_refused(small_sizes, settings, message):
+def test_bad_settings_are_refused(small_sizes, sizes, settings, message):
     with pytest.raises(ConfigError, match=message):
-        PretrainModule(**{**small_sizes, **settings})
+        PretrainModule(dataclasses.replace(small_sizes, **sizes), **settings)
 
 
 def test_single_head_without_hcu_is_allowed(small_sizes):
-    PretrainModule(**{**small_sizes, "ensemble": 1}, lambda_init=0.0)  # the APV-style baseline
+    PretrainModule(dataclasses.replace(small_sizes, ensemble=1), lambda_init=0.0)  # the APV-style baseline
 
 
 def test_a_checkpoint_of_another_size_is_refused(small_sizes):
-    module = PretrainModule(**small_sizes)
-    other = PretrainModule(**{**small_sizes, "deter": 32})
+    module = PretrainModule(small_sizes)
+    other = PretrainModule(dataclasses.replace(small_sizes, deter=32))
     with pytest.raises(ConfigError, match=r"different model size \(deter: checkpoint 32 vs this run 24\)"):
         module.on_load_checkpoint({"hyper_parameters": dict(other.hparams)})
 
@@ -97,7 +100,7 @@ class Snapshots(L.Callback):
 
 def test_non_finite_steps_are_skipped_and_counted(small_sizes, batch_factory):
     torch.manual_seed(0)
-    module = PoisonedStep(**small_sizes)
+    module = PoisonedStep(small_sizes)
     snapshots = Snapshots()
     trainer = L.Trainer(max_steps=4, accelerator="cpu", logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, callbacks=[snapshots])

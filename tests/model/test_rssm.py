@@ -63,10 +63,10 @@ def test_distribution_parameters_stay_float32_under_autocast():
 
 
 def test_world_model_observes_a_loader_batch(fake_batch, small_sizes):
-    model = WorldModel(**small_sizes)
+    model = WorldModel(small_sizes)
     obs = model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"])
     B, L = fake_batch["gaps"].shape
-    assert obs.deter.shape == (B, L, small_sizes["deter"]) and obs.prior_mean.shape == (small_sizes["ensemble"], B, L, small_sizes["stoch"])
+    assert obs.deter.shape == (B, L, small_sizes.deter) and obs.prior_mean.shape == (small_sizes.ensemble, B, L, small_sizes.stoch)
     images = model.decode(RSSMState(obs.deter, obs.stoch))
     assert images.shape == (B, L, 3, 64, 64) and images.dtype == torch.float32
 
