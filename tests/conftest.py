@@ -5,11 +5,13 @@
 - `built_shards`: `Path` to a shard directory built from the clean entries of that tree (broken entries
   removed from the label files), train and validation, `--clips-per-shard 4`: train has 5 shards of
   4, 4, 4, 4, 2 clips, validation one shard of 3 clips. Clips have 24–60 frames at 64×64.
+- `as_v1_export(export, out)`: a copy of a model export with config.json in the old schema_version 1 layout.
 """
 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -47,3 +49,19 @@ def built_shards(sample_ssv2, clean_annotations, tmp_path_factory) -> Path:
     manifest, status = build(config, log=lambda message: None)
     assert status == 0 and manifest is not None
     return out
+
+
+@pytest.fixture
+def as_v1_export():
+    """Copy an export and rewrite its config.json the way `hauwm pretrain export` wrote schema_version 1
+    (before WorldModelConfig): the world_model keys flat at the top level."""
+
+    def rewrite(export: Path, out: Path) -> Path:
+        shutil.copytree(export, out)
+        config = json.loads((out / "config.json").read_text())
+        v1 = {"schema_version": 1, "kind": config["kind"], **config["world_model"]}
+        v1 |= {key: config[key] for key in ("feature_dim", "image_shape", "normalisation", "provenance")}
+        (out / "config.json").write_text(json.dumps(v1, indent=2) + "\n")
+        return out
+
+    return rewrite

@@ -49,8 +49,8 @@ def test_k1_embedding_follows_the_exported_convention(export_dir):
         (lambda d: (d / "weights.safetensors").unlink(), "weights.safetensors not found"),
         (lambda d: (d / "config.json").write_text("{not json"), "not valid JSON"),
         (lambda d: _edit_config(d, schema_version=99), "schema_version 99"),
-        (lambda d: _edit_config(d, deter=25), "does not match"),
-        (lambda d: _edit_config(d, temporal_mode="log"), "temporal_mode 'log'"),
+        (lambda d: _edit_sizes(d, deter=25), "does not match"),
+        (lambda d: _edit_sizes(d, temporal_mode="log"), "temporal_mode must be one of .* got 'log'"),
         (lambda d: (d / "weights.safetensors").write_bytes(pickle.dumps({"w": torch.zeros(2)})), "cannot be read as safetensors"),
     ],
     ids=["no-dir", "no-config", "no-weights", "bad-json", "wrong-version", "wrong-shapes", "bad-embedding", "a-pickle"],
@@ -66,6 +66,19 @@ def _edit_config(directory, **changes):
     config = json.loads((directory / "config.json").read_text())
     config.update(changes)
     (directory / "config.json").write_text(json.dumps(config))
+
+
+def _edit_sizes(directory, **changes):
+    config = json.loads((directory / "config.json").read_text())
+    _edit_config(directory, world_model={**config["world_model"], **changes})
+
+
+def test_a_version_1_export_still_loads(export_dir, export_sizes, as_v1_export, tmp_path):
+    model = load_pretrained(as_v1_export(export_dir, tmp_path / "v1"))
+    assert model.export_config["schema_version"] == 1 and model.config == export_sizes
+    reference = load_pretrained(export_dir)
+    assert all(torch.equal(model.state_dict()[name], t) for name, t in reference.state_dict().items())
+    assert torch.equal(k1_embedding(model), k1_embedding(reference))
 
 
 def test_cli_reports_a_bad_pretrained_without_a_traceback(tmp_path, capsys):

@@ -19,6 +19,8 @@ SMALL = WorldModelConfig(cnn_width=8, embed_dim=32, deter=24, stoch=6, hidden=24
 RUN_ARGS = ["--data.batch_size", "3", "--data.seq_len", "8", "--data.num_workers", "0", "--data.val_batches", "1",
             "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
 RUN_STEPS = 40
+# the world_model section of tiny.yaml (min_std and max_std left at their defaults)
+TINY_SIZES = WorldModelConfig(cnn_width=8, embed_dim=64, deter=64, stoch=16, hidden=64, ensemble=7, temporal_dim=16)
 
 
 def make_batch(batch_size: int = 2, length: int = 6, k_max: int = 5, seed: int = 0) -> dict:

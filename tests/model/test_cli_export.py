@@ -16,7 +16,7 @@ from model.export import ExportError, FrozenWorldModel, load_frozen
 from model.module import PretrainModule
 from model.rssm import RSSMState
 
-from conftest import RUN_STEPS, fit, make_batch  # noqa: I001 (tests/model/conftest.py)
+from conftest import RUN_STEPS, TINY_SIZES, fit, make_batch  # noqa: I001 (tests/model/conftest.py)
 
 
 def scalars(run, tag: str) -> list[float]:
@@ -81,7 +81,8 @@ def test_export_errors_are_clear(tiny_export, tmp_path):
         load_frozen(wrong_version)
     wrong_shape = tmp_path / "shape"
     shutil.copytree(tiny_export, wrong_shape)
-    (wrong_shape / "config.json").write_text(json.dumps({**config, "world_model": {**config["world_model"], "deter": config["world_model"]["deter"] + 8}}))
+    wider = {**config["world_model"], "deter": config["world_model"]["deter"] + 8}
+    (wrong_shape / "config.json").write_text(json.dumps({**config, "world_model": wider}))
     with pytest.raises(ExportError, match=r"does not match .*config.json.*rssm\.cell"):
         load_frozen(wrong_shape)
     (wrong_shape / "weights.safetensors").unlink()
@@ -89,10 +90,59 @@ def test_export_errors_are_clear(tiny_export, tmp_path):
         load_frozen(wrong_shape)
 
 
+def test_a_version_1_export_still_loads(tiny_export, as_v1_export, tmp_path, fake_batch):
+    old = as_v1_export(tiny_export, tmp_path / "v1")
+    frozen, reference = load_frozen(old), load_frozen(tiny_export)
+    assert frozen.export_config["schema_version"] == 1 and frozen.config == reference.config
+    assert frozen.export_config["world_model"] == reference.export_config["world_model"]  # handed back as version 2
+    with torch.no_grad():
+        means = [model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"],
+                               torch.Generator().manual_seed(3)).prior_mean for model in (frozen, reference)]
+    assert torch.equal(*means)
+    config = json.loads((old / "config.json").read_text())
+    del config["temporal_dim"]
+    (old / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ExportError, match=r"v1/config.json: world_model lacks \['temporal_dim'\]; re-export"):
+        load_frozen(old)
+
+
+def test_checkpoint_hyper_parameters_are_plain_data(tiny_run):
+    state = torch.load(tiny_run / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
+    assert state["hyper_parameters"]["world_model"] == TINY_SIZES.to_dict()
+
+
+def flat_checkpoint(tiny_run, path):
+    """tiny_run's last.ckpt with the hyper_parameters `hauwm pretrain fit` wrote before WorldModelConfig (flat)."""
+    state = torch.load(tiny_run / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
+    hparams = dict(state["hyper_parameters"])
+    state["hyper_parameters"] = {**hparams.pop("world_model"), **hparams}
+    torch.save(state, path)
+    return path
+
+
+def test_an_old_checkpoint_with_flat_sizes_still_exports(tiny_run, tiny_export, tmp_path, capsys):
+    old = flat_checkpoint(tiny_run, tmp_path / "flat.ckpt")
+    assert main(["export", str(old), "--out", str(tmp_path / "export")]) == 0
+    assert "M=7" in capsys.readouterr().out
+    exported, reference = load_frozen(tmp_path / "export"), load_frozen(tiny_export)
+    assert exported.config == reference.config
+    assert all(torch.equal(exported.state_dict()[name], t) for name, t in reference.state_dict().items())
+
+
+def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards, tiny_run, tmp_path, capsys):
+    old = flat_checkpoint(tiny_run, tmp_path / "flat.ckpt")
+    assert fit(built_shards, tmp_path / "run", "--ckpt_path", str(old)) == 2
+    err = capsys.readouterr().err
+    assert "keeps the model sizes flat" in err and "hauwm pretrain export" in err and "Traceback" not in err
+    assert fit(built_shards, tmp_path / "run", "--model.world_model.deter", "48", "--ckpt_path", str(old)) == 2
+    assert "different model size (deter: checkpoint 64 vs this run 48)" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     ("flags", "message"),
     [
         (["--model.world_model.ensemble", "1"], "HCU needs an ensemble of at least 2 heads"),
+        (["--model.world_model.temporal_dim", "7"], "world_model.temporal_dim must be even"),
         (["--data.k_max", "0"], "k_max"),
         (["--trainer.max_steps", "1", "--data.shards", "/nonexistent/shards"], "/nonexistent/shards does not exist"),
     ],

@@ -86,3 +86,10 @@ def test_every_setting_is_overridable(capsys, tmp_path):
     config = yaml.safe_load(capsys.readouterr().out)
     assert config["trainer"]["max_steps"] == 50 and config["model"]["hcu_target"] == 0.3
     assert config["model"]["world_model"]["temporal_mode"] == "absolute" and config["data"]["seq_len"] == 24
+
+
+def test_help_lists_the_sizes_under_model_world_model(capsys, tmp_path):
+    assert main(["fit", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "--model.world_model.deter DETER" in out and "size of the deterministic (GRU) state" in out
+    assert "--model.deter" not in out

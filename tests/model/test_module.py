@@ -76,6 +76,22 @@ def test_a_checkpoint_of_another_size_is_refused(small_sizes):
     other = PretrainModule(dataclasses.replace(small_sizes, deter=32))
     with pytest.raises(ConfigError, match=r"different model size \(deter: checkpoint 32 vs this run 24\)"):
         module.on_load_checkpoint({"hyper_parameters": dict(other.hparams)})
+    flat = {**other.hparams["world_model"], "lr": other.hparams["lr"]}  # checkpoints before WorldModelConfig
+    with pytest.raises(ConfigError, match=r"different model size \(deter: checkpoint 32 vs this run 24\)"):
+        module.on_load_checkpoint({"hyper_parameters": flat})
+
+
+def test_a_checkpoint_keeps_the_sizes_as_plain_data_and_loads_back(small_sizes, batch_factory, tmp_path):
+    module = PretrainModule(small_sizes, lr=1e-3)
+    trainer = L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    trainer.fit(module, DataLoader([batch_factory()], batch_size=None))
+    trainer.save_checkpoint(tmp_path / "step1.ckpt")
+    saved = torch.load(tmp_path / "step1.ckpt", weights_only=True)["hyper_parameters"]
+    assert saved["world_model"] == small_sizes.to_dict() and saved["lr"] == 1e-3
+    loaded = PretrainModule.load_from_checkpoint(tmp_path / "step1.ckpt")
+    assert loaded.world_model.config == small_sizes and loaded.hparams.lr == 1e-3
+    assert all(torch.equal(t, module.state_dict()[name]) for name, t in loaded.state_dict().items())
 
 
 class PoisonedStep(PretrainModule):
