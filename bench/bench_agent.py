@@ -28,6 +28,7 @@ from finetune import load_pretrained  # noqa: E402
 from finetune.agent import Agent  # noqa: E402
 from finetune.config import FinetuneConfig  # noqa: E402
 from finetune.pretrained import k1_embedding  # noqa: E402
+from model.config import WorldModelConfig  # noqa: E402
 from model.export import export_frozen  # noqa: E402
 from model.world_model import WorldModel  # noqa: E402
 
@@ -48,7 +49,7 @@ def bench(name: str, export_sizes: dict, agent_cfg: dict, updates: int, agent_ki
         agent = Agent(dataclasses.replace(cfg, **sizes), ACTION_DIM)
     else:
         with tempfile.TemporaryDirectory() as tmp:
-            frozen = load_pretrained(export_frozen(WorldModel(**export_sizes), tmp))
+            frozen = load_pretrained(export_frozen(WorldModel(WorldModelConfig(**export_sizes)), tmp))
         agent = Agent(cfg, ACTION_DIM, frozen, k1_embedding(frozen))
     rng = np.random.default_rng(0)
     shape = (cfg.batch_size, cfg.seq_len)

@@ -27,12 +27,13 @@ SIZES = {  # world-model sizes (configs/pretrain/tiny.yaml and ssv2.yaml) and ba
 def measure(size: str, ensemble: int, steps: int, threads: int, rssm_only: bool, queue) -> None:
     import torch
 
+    from model.config import WorldModelConfig
     from model.module import PretrainModule
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)
     spec = SIZES[size]
-    module = PretrainModule(**spec["model"], ensemble=ensemble, lambda_init=1.0 if ensemble > 1 else 0.0)
+    module = PretrainModule(WorldModelConfig(**spec["model"], ensemble=ensemble), lambda_init=1.0 if ensemble > 1 else 0.0)
     B, L = spec["batch"], spec["length"]
     gaps = torch.randint(1, 6, (B, L))
     gaps[:, 0] = 0
