@@ -66,14 +66,19 @@ def parser() -> argparse.ArgumentParser:
 
 
 def env_settings(pairs: list[str]) -> dict[str, object]:
+    """--set KEY=VALUE pairs -> make_env keyword arguments, checked."""
     from finetune.config import parse_override
-
     from finetune.datasets.minari_io import DatasetError
 
     settings = dict(parse_override(pair) for pair in pairs)
     unknown = sorted(set(settings) - set(ENV_SETTINGS))
     if unknown:
         raise DatasetError(f"--set {', '.join(unknown)}: not an env setting; the settings are {', '.join(ENV_SETTINGS)}")
+    for key, value in settings.items():
+        wrong = (not isinstance(value, bool)) if key == "fast_render" else (type(value) is not int or value < 1)
+        if wrong:
+            raise DatasetError(f"--set {key}={value!r}: {key} must be "
+                               + ("true or false" if key == "fast_render" else "a whole number >= 1"))
     return settings
 
 

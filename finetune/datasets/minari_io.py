@@ -238,6 +238,8 @@ def _to_replay_layout(dataset_id: str, index: int, raw: dict[str, Any], view: Im
     success = np.zeros(steps + 1, np.float32) if success is None else np.asarray(success, np.float32).reshape(-1)
     if len(success) == steps:  # a per-step flag without the reset entry
         success = np.concatenate([zero, success])
+    if len(success) != steps + 1:
+        raise DatasetError(f"{where}: infos/success holds {len(success)} entries for {steps} steps")
     terminal = np.zeros(steps + 1, np.float32)
     terminal[-1] = float(np.asarray(raw["terminations"])[-1])
     return {"obs": obs, "action": np.concatenate([np.zeros((1, actions.shape[1]), np.float32), actions]),

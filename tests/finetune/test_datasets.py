@@ -208,3 +208,11 @@ def test_tasks_without_a_scripted_expert_say_what_to_use(capsys):
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "dmc_cartpole_swingup has no scripted expert" in err and "--policy agent --checkpoint RUNDIR" in err
+
+
+def test_bad_env_settings_are_refused(capsys):
+    base = ["collect", "--task", TASK, "--policy", "random", "--episodes", "1", "--dataset-id", "test/x-v0"]
+    for setting, message in (("time_limit=abc", "time_limit must be a whole number"), ("fast_render=2", "true or false"),
+                             ("image_size=32", "not an env setting"), ("time_limit=600", "exceeds Meta-World's")):
+        assert main([*base, "--set", setting]) == 2, setting
+        assert message in capsys.readouterr().err, setting
