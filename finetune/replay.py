@@ -19,6 +19,17 @@ import numpy as np
 KEYS = ("obs", "action", "reward")
 
 
+def episode_files(directory: Path) -> list[Path]:
+    """The episode files a replay directory holds, oldest first (half-written `.tmp.npz` files left out)."""
+    return sorted(p for p in Path(directory).glob("*.npz") if not p.name.endswith(".tmp.npz"))
+
+
+def read_episode(path: Path) -> dict[str, np.ndarray]:
+    """One episode file: obs uint8 [T+1, 3, H, W], action float32 [T+1, A], reward float32 [T+1]."""
+    with np.load(path, allow_pickle=False) as data:
+        return {key: data[key] for key in KEYS}
+
+
 class Replay:
     def __init__(self, directory: Path | None, capacity: int, rng: np.random.Generator):
         self.directory = Path(directory) if directory is not None else None
@@ -45,7 +56,7 @@ class Replay:
         """Reload the newest episodes on disk that fit the capacity (for resume); returns how many."""
         if self.directory is None or not self.directory.is_dir():
             return 0
-        paths = sorted(p for p in self.directory.glob("*.npz") if not p.name.endswith(".tmp.npz"))
+        paths = episode_files(self.directory)
         self.num_saved = len(paths)
         chosen, steps = [], 0
         for path in reversed(paths):
@@ -55,8 +66,7 @@ class Replay:
             chosen.append(path)
             steps += length
         for path in reversed(chosen):
-            with np.load(path, allow_pickle=False) as data:
-                self._keep({key: data[key] for key in KEYS})
+            self._keep(read_episode(path))
         return len(chosen)
 
     def _keep(self, episode: dict[str, np.ndarray]) -> None:

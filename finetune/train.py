@@ -28,6 +28,7 @@ from finetune.agent import Agent
 from finetune.config import FinetuneConfig
 from finetune.logger import Logger
 from finetune.replay import Replay
+from finetune.rollout import AgentPolicy, play_episode
 
 CHECKPOINT = "checkpoint.pt"
 LOCK = ".lock"
@@ -107,19 +108,12 @@ def evaluate(agent: Agent, env, episodes: int, task: str) -> dict[str, float]:
     """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate."""
     from finetune.envs.references import normalised_return
 
+    policy = AgentPolicy(agent, explore=False)
     returns, successes = [], []
     for _ in range(episodes):
-        obs, _ = env.reset()
-        latent, prev_action = agent.initial()
-        total, success, done = 0.0, False, False
-        while not done:
-            action, latent, prev_action = agent.act(obs, latent, prev_action, explore=False)
-            obs, reward, terminated, truncated, info = env.step(action)
-            total += float(reward)
-            success = success or bool(info.get("success", False))
-            done = terminated or truncated
-        returns.append(total)
-        successes.append(success)
+        episode = play_episode(env, policy)
+        returns.append(float(episode["reward"].sum(dtype=np.float64)))
+        successes.append(bool(episode.get("success", np.zeros(1)).any()))
     result = {"return": float(np.mean(returns)), "return_std": float(np.std(returns))}
     try:
         result["normalised_return"] = float(normalised_return(task, result["return"]))

@@ -3,6 +3,7 @@
     hauwm shards   ...   data_pipeline.cli   (SSv2 -> WebDataset shards, inspect, preview, sample data)
     hauwm pretrain ...   model.cli           (LightningCLI fit, export, analyze)
     hauwm finetune ...   finetune.cli        (online RL from the frozen export)
+    hauwm datasets ...   finetune.datasets.cli (Minari datasets for offline RL: collect, merge, inspect, list)
 """
 
 from __future__ import annotations
@@ -14,11 +15,12 @@ STAGES = {
     "shards": ("data_pipeline.cli", "shard SSv2 into WebDataset tars, inspect and preview them"),
     "pretrain": ("model.cli", "pre-train the ensemble RSSM (fit), export it, analyze it"),
     "finetune": ("finetune.cli", "train an agent on a control task from the frozen export"),
+    "datasets": ("finetune.datasets.cli", "collect, merge, inspect and list Minari datasets for offline RL"),
 }
 
 
 def usage() -> str:
-    lines = ["usage: hauwm {shards,pretrain,finetune} ...", "", "stages:"]
+    lines = [f"usage: hauwm {{{','.join(STAGES)}}} ...", "", "stages:"]
     lines += [f"  {name:<9} {help_}" for name, (_, help_) in STAGES.items()]
     lines += ["", "Run `hauwm STAGE --help` for the stage's own flags."]
     return "\n".join(lines)

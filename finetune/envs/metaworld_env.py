@@ -6,6 +6,8 @@ cameras render upside down, so rows are flipped. Episodes are Meta-World's 500-s
 action repeat defaults to 1 as in APV (a Meta-World step is already 5 physics steps, and the rewards,
 0-10 per step, sum to Table 4's scale over 500 steps). `info["success"]` is Meta-World's own success
 flag; an episode goes on after success (no early termination), as in the paper's setting.
+`env.state` is Meta-World's own 39-dim state vector after the last simulator step (what its scripted
+policies in `metaworld.policies` act on; the agent never sees it).
 """
 
 from __future__ import annotations
@@ -64,6 +66,7 @@ class MetaWorldEnv(PixelEnv):
             disable_multisampling(sim.model)
         sim.mujoco_renderer.render("rgb_array")  # creates the offscreen viewer and its OpenGL context
         self._viewer = sim.mujoco_renderer.viewer
+        self.state: np.ndarray | None = None  # float64 [39], set by reset() and step()
         if fast_render:
             turn_off_scene_flags(self._viewer.scn)
 
@@ -71,10 +74,10 @@ class MetaWorldEnv(PixelEnv):
         self._env.unwrapped.seed(seed)
 
     def _reset_sim(self) -> None:
-        self._env.reset()
+        self.state, _ = self._env.reset()
 
     def _step_sim(self, action: np.ndarray) -> tuple[float, bool, bool, bool]:
-        _, reward, terminated, truncated, info = self._env.step(action.astype(np.float32))
+        self.state, reward, terminated, truncated, info = self._env.step(action.astype(np.float32))
         return float(reward), terminated, truncated, bool(info["success"])
 
     def _render_frame(self) -> np.ndarray:

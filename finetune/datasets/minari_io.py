@@ -1,0 +1,352 @@
+"""Write, read and check Minari datasets of pixel episodes (the offline-RL format of the field).
+
+A dataset ID such as `hauwm/drawer_close-expert-v0` lives in `$MINARI_DATASETS_PATH/<ID>/data`
+(Minari's own root variable, default `~/.minari/datasets`). On disk an episode of T agent steps holds,
+in Minari's layout, `observations` [T+1] (HWC uint8 frames, raw unless written with `jpeg=True`),
+`actions` [T], `rewards` [T], `terminations` / `truncations` [T] and, where the suite has one,
+`infos/success` [T+1] (entry 0 is the reset). In memory every episode is a dict in the replay's
+Dreamer alignment (finetune/replay.py), so `Replay.add` takes it as it is:
+
+    obs     uint8   [T+1, 3, 64, 64]  o_0 ... o_T
+    action  float32 [T+1, A]          0, a_0 ... a_{T-1}   (in [-1, 1])
+    reward  float32 [T+1]             0, r_1 ... r_T
+    success float32 [T+1]             0, s_1 ... s_T       (all 0 where the suite has no success)
+    terminal float32 [T+1]            1 at the last entry if the episode ended in a terminal state
+
+Reading accepts datasets made elsewhere too: Box image observations HWC or CHW, or a Dict observation
+with an image entry ("pixels", "image", ...); square-ish images of another size are resized to 64x64
+with OpenCV's INTER_AREA. Every other mismatch is a `DatasetError` naming the dataset and the fix.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import gymnasium
+import numpy as np
+from tqdm import tqdm
+
+IMAGE_SIZE = 64  # the frames the world model is trained on
+IMAGE_KEYS = ("pixels", "image", "rgb", "observation", "obs")  # Dict observation entries tried in this order
+MAX_ASPECT = 1.25  # "square-ish": larger/smaller side at most this, else resizing would distort the scene
+METADATA_KEY = "hauwm"  # our settings in the dataset's metadata.json (task, source, env settings)
+ID_EXAMPLE = "hauwm/drawer_close-expert-v0"
+
+
+class DatasetError(ValueError):
+    """A dataset that cannot be used (missing, empty, wrong images or actions); printed without a traceback."""
+
+
+def dataset_path(dataset_id: str | None = None) -> Path:
+    """Where dataset `dataset_id` lives (whether or not it exists): $MINARI_DATASETS_PATH/<ID>; None: the root."""
+    from minari.storage.datasets_root_dir import get_dataset_path
+
+    return get_dataset_path(dataset_id)
+
+
+def check_dataset_id(dataset_id: str) -> None:
+    """Minari's naming rule: `(namespace/)name-vN`, e.g. hauwm/drawer_close-expert-v0."""
+    from minari.dataset.minari_dataset import DATASET_ID_RE
+
+    match = DATASET_ID_RE.fullmatch(dataset_id)
+    if match is None or match.group("version") is None:
+        raise DatasetError(f"dataset ID {dataset_id!r} is not a Minari ID: write (namespace/)name-vN, "
+                           f"e.g. {ID_EXAMPLE} (letters, digits, - and _; the -vN version is required)")
+
+
+def list_datasets() -> dict[str, dict[str, Any]]:
+    """Every dataset under $MINARI_DATASETS_PATH: ID -> its metadata (Minari's `list_local_datasets`)."""
+    import minari
+
+    with warnings.catch_warnings():  # a broken dataset directory is skipped, not a reason to fail the listing
+        warnings.simplefilter("ignore")
+        return minari.list_local_datasets()
+
+
+def _missing_message(dataset_id: str) -> str:
+    root = dataset_path()
+    available = list(list_datasets())
+    listing = (f"the datasets there: {', '.join(available)}" if available else
+               "there are none; make one with `hauwm datasets collect` or point MINARI_DATASETS_PATH elsewhere")
+    return f"dataset {dataset_id!r} not found under MINARI_DATASETS_PATH={root}; {listing}"
+
+
+def open_dataset(dataset_id: str):
+    """The `minari.MinariDataset` of `dataset_id`, or a DatasetError saying what is wrong and what exists."""
+    import minari
+
+    check_dataset_id(dataset_id)
+    if not (dataset_path(dataset_id) / "data").is_dir():
+        raise DatasetError(_missing_message(dataset_id))
+    try:
+        dataset = minari.load_dataset(dataset_id)
+    except (ValueError, OSError, KeyError, AssertionError, json.JSONDecodeError) as error:
+        raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} could not be read by Minari "
+                           f"({type(error).__name__}: {error}); write it again") from None
+    if dataset.total_episodes == 0:
+        raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} holds no episodes: collect into it "
+                           "again (delete the directory first)")
+    return dataset
+
+
+def hauwm_metadata(dataset) -> dict[str, Any]:
+    """Our settings stored with a dataset written here ({} for a dataset made elsewhere)."""
+    return dict(dataset.storage.metadata.get(METADATA_KEY, {}))
+
+
+# --- reading ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ImageView:
+    """Where the RGB frames are in a dataset's observations and how to turn them into [3, 64, 64]."""
+
+    key: str | None  # entry of a Dict observation, None for a Box observation
+    channels_first: bool  # CHW (else HWC)
+    height: int
+    width: int
+
+    def frames(self, observations) -> np.ndarray:
+        """observations of one episode -> uint8 [T+1, 3, 64, 64]."""
+        images = np.asarray(observations if self.key is None else observations[self.key])
+        if self.channels_first:
+            images = images.transpose(0, 2, 3, 1)  # [T+1, H, W, 3]
+        if (self.height, self.width) != (IMAGE_SIZE, IMAGE_SIZE):
+            size = (IMAGE_SIZE, IMAGE_SIZE)
+            images = np.stack([cv2.resize(image, size, interpolation=cv2.INTER_AREA) for image in images])
+        return np.ascontiguousarray(images.transpose(0, 3, 1, 2))
+
+
+def image_view(dataset_id: str, space: gymnasium.Space) -> ImageView:
+    """Find the RGB image in an observation space (Box HWC/CHW, or a Dict with an image entry)."""
+    key = None
+    if isinstance(space, gymnasium.spaces.Dict):
+        images = [name for name, sub in space.spaces.items() if _rgb_layout(sub) is not None]
+        named = [name for name in IMAGE_KEYS if name in images]
+        if not named and len(images) != 1:
+            raise DatasetError(f"dataset {dataset_id!r}: its Dict observations {list(space.spaces)} hold "
+                               f"{'no' if not images else 'several'} RGB image entries {images}; HAUWM needs one, "
+                               f"named one of {', '.join(IMAGE_KEYS)}")
+        key = named[0] if named else images[0]
+        space = space.spaces[key]
+    layout = _rgb_layout(space)
+    if layout is None:
+        raise DatasetError(f"dataset {dataset_id!r}: observations {space} are not RGB images (HAUWM needs uint8 "
+                           f"frames shaped (H, W, 3) or (3, H, W), ideally {IMAGE_SIZE}x{IMAGE_SIZE}); collect pixel "
+                           "observations, e.g. with `hauwm datasets collect`")
+    channels_first, height, width = layout
+    if max(height, width) > MAX_ASPECT * min(height, width):
+        raise DatasetError(f"dataset {dataset_id!r}: images are {height}x{width}, too far from square to resize to "
+                           f"{IMAGE_SIZE}x{IMAGE_SIZE} without distorting them (at most {MAX_ASPECT}:1); crop them to a "
+                           "square first")
+    return ImageView(key, channels_first, height, width)
+
+
+def _rgb_layout(space: gymnasium.Space) -> tuple[bool, int, int] | None:
+    """(channels_first, H, W) of a uint8 Box of RGB images, None for anything else."""
+    if not isinstance(space, gymnasium.spaces.Box) or space.dtype != np.uint8 or len(space.shape) != 3:
+        return None
+    if space.shape[-1] == 3:
+        return False, space.shape[0], space.shape[1]
+    if space.shape[0] == 3:
+        return True, space.shape[1], space.shape[2]
+    return None
+
+
+def check_actions(dataset_id: str, space: gymnasium.Space, task: str | None, action_dim: int | None) -> None:
+    """Actions must be a flat Box in [-1, 1] (the agents' range) with the task's dimension."""
+    if not isinstance(space, gymnasium.spaces.Box) or len(space.shape) != 1:
+        raise DatasetError(f"dataset {dataset_id!r}: actions {space} are not a flat Box; HAUWM's agents act with "
+                           "continuous vectors")
+    if action_dim is not None and space.shape[0] != action_dim:
+        raise DatasetError(f"dataset {dataset_id!r}: actions have {space.shape[0]} dimensions, "
+                           f"{task or 'the task'} has {action_dim}; use a dataset collected on that task")
+    if not (np.allclose(space.low, -1.0) and np.allclose(space.high, 1.0)):
+        raise DatasetError(f"dataset {dataset_id!r}: action bounds are [{space.low.min():g}, {space.high.max():g}], "
+                           "HAUWM's tasks act in [-1, 1]; rescale the actions into [-1, 1] and write the dataset again")
+
+
+def has_success(dataset) -> bool:
+    """Whether the dataset's episodes carry a per-step success flag (infos/success)."""
+    written = hauwm_metadata(dataset).get("has_success")
+    if written is not None:
+        return bool(written)
+    first = next(dataset.storage.get_episodes([int(dataset.episode_indices[0])]))
+    return "success" in (first.get("infos") or {})
+
+
+def iterate_episodes(dataset_id: str, task: str | None = None, action_dim: int | None = None,
+                     progress: bool = True) -> Iterator[dict[str, np.ndarray]]:
+    """The episodes of `dataset_id` one at a time, in the replay's layout (see the module docstring).
+
+    Spaces are checked before the first episode is read: RGB images (resized to 64x64 when square-ish),
+    actions in [-1, 1] with `action_dim` dimensions, and the task the dataset was collected on (when it
+    says and `task` is given). Each episode's arrays are checked as it is read.
+    """
+    dataset = open_dataset(dataset_id)
+    view = image_view(dataset_id, dataset.observation_space)
+    check_actions(dataset_id, dataset.action_space, task, action_dim)
+    collected_on = hauwm_metadata(dataset).get("task")
+    if task is not None and collected_on is not None and collected_on != task:
+        raise DatasetError(f"dataset {dataset_id!r} was collected on {collected_on}, not {task}; "
+                           "use a dataset of that task")
+    episodes = dataset.storage.get_episodes(dataset.episode_indices)
+    bar = tqdm(total=dataset.total_episodes, unit=" episode", desc=f"reading {dataset_id}", disable=not progress,
+               leave=False, dynamic_ncols=True)
+    for index in dataset.episode_indices:
+        try:
+            raw = next(episodes)
+        except (KeyError, OSError, ValueError) as error:  # a missing array or a damaged file, raised by h5py
+            raise DatasetError(f"dataset {dataset_id!r}: episode {index} could not be read "
+                               f"({type(error).__name__}: {error}); the dataset is damaged, write it again") from None
+        yield _to_replay_layout(dataset_id, int(index), raw, view)
+        bar.update()
+    bar.close()
+
+
+def load_episodes(dataset_id: str, task: str | None = None, action_dim: int | None = None,
+                  progress: bool = True) -> list[dict[str, np.ndarray]]:
+    """All episodes of `dataset_id` in memory (see `iterate_episodes`); raises DatasetError on a bad dataset."""
+    return list(iterate_episodes(dataset_id, task, action_dim, progress))
+
+
+def _to_replay_layout(dataset_id: str, index: int, raw: dict[str, Any], view: ImageView) -> dict[str, np.ndarray]:
+    where = f"dataset {dataset_id!r}, episode {index}"
+    rewards = raw.get("rewards")
+    if rewards is None or len(rewards) == 0:
+        raise DatasetError(f"{where} has no rewards; HAUWM's offline learners need the reward of every step")
+    rewards = np.asarray(rewards, np.float32)
+    if not np.all(np.isfinite(rewards)):
+        raise DatasetError(f"{where}: rewards are missing (NaN or infinite); write the dataset with real rewards")
+    actions = np.asarray(raw["actions"], np.float32)
+    obs = view.frames(raw["observations"])
+    steps = len(rewards)
+    if len(actions) != steps or len(obs) != steps + 1:
+        raise DatasetError(f"{where}: {len(obs)} observations, {len(actions)} actions and {steps} rewards; Minari "
+                           "episodes hold T + 1 observations for T actions and rewards")
+    if np.abs(actions).max(initial=0.0) > 1.0 + 1e-5:
+        raise DatasetError(f"{where}: actions reach {np.abs(actions).max():.3g}, outside the declared [-1, 1]")
+    zero = np.zeros(1, np.float32)
+    success = (raw.get("infos") or {}).get("success")
+    success = np.zeros(steps + 1, np.float32) if success is None else np.asarray(success, np.float32).reshape(-1)
+    if len(success) == steps:  # a per-step flag without the reset entry
+        success = np.concatenate([zero, success])
+    if len(success) != steps + 1:
+        raise DatasetError(f"{where}: infos/success holds {len(success)} entries for {steps} steps")
+    terminal = np.zeros(steps + 1, np.float32)
+    terminal[-1] = float(np.asarray(raw["terminations"])[-1])
+    return {"obs": obs, "action": np.concatenate([np.zeros((1, actions.shape[1]), np.float32), actions]),
+            "reward": np.concatenate([zero, rewards]), "success": success, "terminal": terminal}
+
+
+# --- writing ---------------------------------------------------------------------------------------
+
+
+def _episode_buffer(episode: dict[str, np.ndarray]):
+    """One episode in the replay's layout -> a minari.data_collector.EpisodeBuffer."""
+    from minari.data_collector import EpisodeBuffer
+
+    steps = len(episode["reward"]) - 1
+    terminated = bool(episode.get("terminal", np.zeros(1))[-1])
+    terminations = np.zeros(steps, bool)
+    truncations = np.zeros(steps, bool)
+    (terminations if terminated else truncations)[-1] = True
+    infos = {"success": np.asarray(episode["success"], np.float32)} if "success" in episode else None
+    return EpisodeBuffer(observations=np.ascontiguousarray(episode["obs"].transpose(0, 2, 3, 1)),  # [T+1, H, W, 3]
+                         actions=np.asarray(episode["action"][1:], np.float32),
+                         rewards=np.asarray(episode["reward"][1:], np.float64),
+                         terminations=terminations, truncations=truncations, infos=infos)
+
+
+def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], metadata: dict[str, Any],
+                  jpeg: bool = False, description: str | None = None):
+    """Write episodes (replay layout, obs [T+1, 3, 64, 64]) as a new Minari dataset; returns the MinariDataset.
+
+    Episodes are appended one at a time as `episodes` yields them (a generator never holds the dataset in
+    memory); if anything fails on the way, the partial dataset is deleted. Frames are stored raw (lossless)
+    unless `jpeg`: Minari's JPEG (Pillow, quality 75, 4:2:0 chroma) is about 5x smaller but changes a
+    64x64 Meta-World frame by ~6 grey levels on average (docs/datasets.md). `metadata` (our settings: task,
+    source, env settings) is stored under the "hauwm" key of the dataset's metadata.json; Table 4's random
+    and expert returns become Minari's ref_min_score / ref_max_score where the task has them.
+    """
+    import minari
+
+    from finetune.envs.references import REFERENCE_RETURNS
+
+    check_dataset_id(dataset_id)
+    path = dataset_path(dataset_id)
+    if path.exists():
+        raise DatasetError(f"dataset {dataset_id!r} already exists at {path}: use another ID (e.g. the next version "
+                           "-vN) or delete that directory")
+    dataset, with_success, count = None, None, 0
+    try:
+        for episode in episodes:
+            if dataset is None:
+                with_success = "success" in episode
+                observation_space = gymnasium.spaces.Box(0, 255, episode["obs"].shape[2:] + (3,), np.uint8)
+                action_space = gymnasium.spaces.Box(-1.0, 1.0, episode["action"].shape[1:], np.float32)
+                with warnings.catch_warnings():  # Minari's reminders to name an author, a code link, an eval env
+                    warnings.simplefilter("ignore", UserWarning)
+                    dataset = minari.create_dataset_from_buffers(
+                        dataset_id, [], observation_space=observation_space, action_space=action_space,
+                        algorithm_name=str(metadata.get("source", "unknown")), description=description,
+                        jpeg_encoding=jpeg)
+            if ("success" in episode) != with_success:
+                raise ValueError("episodes of one dataset must all have, or all lack, a success flag")
+            dataset.update_dataset_from_buffer([_episode_buffer(episode)])
+            count += 1
+    except BaseException:
+        shutil.rmtree(path, ignore_errors=True)
+        raise
+    if dataset is None:
+        shutil.rmtree(path, ignore_errors=True)
+        raise DatasetError(f"dataset {dataset_id!r}: no episodes to write")
+    extra: dict[str, Any] = {METADATA_KEY: {**metadata, "has_success": with_success}}
+    if metadata.get("task") in REFERENCE_RETURNS:
+        extra["ref_min_score"], extra["ref_max_score"] = map(float, REFERENCE_RETURNS[metadata["task"]])
+    dataset.storage.update_metadata(extra)
+    return dataset
+
+
+def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
+    """Concatenate the episodes of `source_ids` into a new dataset `out_id` (e.g. medium replay + expert).
+
+    The sources must agree on the task and the env settings they were collected with (where they say);
+    the new dataset is JPEG-encoded only if every source is (JPEG frames are decoded and encoded again),
+    and keeps success flags only if every source has them.
+    """
+    if len(source_ids) < 2:
+        raise DatasetError("merge needs at least two datasets")
+    datasets = [open_dataset(dataset_id) for dataset_id in source_ids]
+    settings = [hauwm_metadata(dataset) for dataset in datasets]
+    for key in ("task", "action_repeat", "image_size"):
+        values = {s[key] for s in settings if key in s}
+        if len(values) > 1:
+            described = ", ".join(f"{i} has {s.get(key)!r}" for i, s in zip(source_ids, settings))
+            raise DatasetError(f"cannot merge datasets with different {key}: {described}")
+    action_dims = {dataset.action_space.shape for dataset in datasets}
+    if len(action_dims) > 1:
+        raise DatasetError(f"cannot merge datasets with different action shapes {sorted(action_dims)}: "
+                           f"{', '.join(source_ids)}")
+    keep_success = all(has_success(dataset) for dataset in datasets)
+    jpeg = all(dataset.storage.jpeg_encoding for dataset in datasets)
+
+    def episodes() -> Iterator[dict[str, np.ndarray]]:
+        for dataset_id in source_ids:
+            for episode in iterate_episodes(dataset_id, progress=progress):
+                if not keep_success:
+                    episode.pop("success")
+                yield episode
+
+    shared = {key: value for key, value in settings[0].items() if all(s.get(key) == value for s in settings[1:])}
+    merged = {**shared, "source": "merge", "merged": list(source_ids)}
+    dataset = write_dataset(out_id, episodes(), merged, jpeg=jpeg, description=f"merge of {', '.join(source_ids)}")
+    dataset.storage.update_metadata({"combined_datasets": list(source_ids)})
+    return dataset

@@ -1,0 +1,51 @@
+"""Episode statistics of a dataset: steps, returns, Table 4 normalised return, success rate.
+
+Fed one episode at a time (replay layout), so summarising a dataset never holds its frames in memory.
+The normalised return, (R - random) / (expert - random) with the paper's Table 4 references, is only
+comparable for episodes of the suite's default length (Meta-World 500 steps, DMC 1000 env steps).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from finetune.envs.references import REFERENCE_RETURNS, normalised_return
+
+
+class Summary:
+    def __init__(self, task: str | None) -> None:
+        self.task = task
+        self.returns: list[float] = []
+        self.lengths: list[int] = []  # agent steps per episode
+        self.successes: list[bool] = []  # success at any step of the episode, for episodes with a success flag
+
+    def add(self, episode: dict[str, np.ndarray]) -> None:
+        self.returns.append(float(episode["reward"].sum(dtype=np.float64)))
+        self.lengths.append(len(episode["reward"]) - 1)
+        if "success" in episode:
+            self.successes.append(bool(episode["success"].any()))
+
+    def stats(self) -> dict[str, float]:
+        returns = np.asarray(self.returns)
+        result = {"episodes": len(returns), "steps": int(sum(self.lengths)), "return_mean": float(returns.mean()),
+                  "return_min": float(returns.min()), "return_max": float(returns.max())}
+        if self.task in REFERENCE_RETURNS:
+            result["normalised_return"] = float(normalised_return(self.task, result["return_mean"]))
+        if self.successes:
+            result["success_rate"] = float(np.mean(self.successes))
+        return result
+
+    def lines(self) -> list[str]:
+        s = self.stats()
+        low, high = min(self.lengths), max(self.lengths)
+        per_episode = f"{low}" if low == high else f"{low}-{high}"
+        lines = [f"episodes        {s['episodes']}",
+                 f"steps           {s['steps']} ({per_episode} per episode)",
+                 f"return          mean {s['return_mean']:.1f}, min {s['return_min']:.1f}, max {s['return_max']:.1f}"]
+        if "normalised_return" in s:
+            random_return, expert_return = REFERENCE_RETURNS[self.task]
+            lines.append(f"normalised      {s['normalised_return']:.3f} (Table 4: random {random_return:g}, "
+                         f"expert {expert_return:g})")
+        if "success_rate" in s:
+            lines.append(f"success rate    {s['success_rate']:.0%} ({sum(self.successes)} of {s['episodes']} episodes)")
+        return lines

@@ -1,0 +1,218 @@
+"""finetune.datasets: Minari datasets written from real episodes, read back, merged, inspected and refused.
+
+Real Meta-World episodes (fast rendering, 20-90 step time limits) and real Minari/HDF5 storage under a
+temporary MINARI_DATASETS_PATH.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import gymnasium
+import h5py
+import minari
+import numpy as np
+import pytest
+import torch
+import yaml
+from minari.data_collector import EpisodeBuffer
+
+from finetune.datasets import DatasetError, load_episodes, merge_datasets, write_dataset
+from finetune.datasets.cli import main
+from finetune.datasets.sources import RandomPolicy
+from finetune.envs import make_env
+from finetune.replay import KEYS, Replay
+from finetune.rollout import play_episode
+from finetune.train import CHECKPOINT, build_agent, save_checkpoint
+
+TASK = "metaworld_drawer_close"
+
+
+@pytest.fixture(autouse=True)
+def datasets_root(tmp_path, monkeypatch):
+    root = tmp_path / "minari"
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(root))
+    return root
+
+
+@pytest.fixture(scope="module")
+def random_episodes():
+    """Three 20-step random episodes of drawer close (replay layout, with success flags)."""
+    env = make_env(TASK, seed=0, fast_render=True, time_limit=20)
+    policy = RandomPolicy(env.action_space)
+    episodes = [play_episode(env, policy) for _ in range(3)]
+    env.close()
+    return episodes
+
+
+def write_foreign(dataset_id: str, observation_space, observations, action_space=None, actions=None, rewards=None):
+    """A one-episode dataset as another project might write it (Minari's own API, raw frames)."""
+    steps = len(observations) - 1 if not isinstance(observations, dict) else len(observations["pixels"]) - 1
+    action_space = action_space or gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32)
+    actions = np.zeros((steps, *action_space.shape), np.float32) if actions is None else actions
+    rewards = np.ones(steps) if rewards is None else rewards
+    buffer = EpisodeBuffer(observations=observations, actions=actions, rewards=rewards,
+                           terminations=np.zeros(steps, bool), truncations=np.eye(steps, dtype=bool)[-1])
+    with pytest.warns(UserWarning):  # Minari asks for an author, a code link...
+        minari.create_dataset_from_buffers(dataset_id, [buffer], observation_space=observation_space,
+                                           action_space=action_space, jpeg_encoding=False)
+
+
+@pytest.mark.parametrize("jpeg", [False, True])
+def test_round_trip_keeps_actions_rewards_success_and_frames(random_episodes, jpeg):
+    write_dataset("test/random-v0", iter(random_episodes), {"task": TASK, "source": "random"}, jpeg=jpeg)
+    loaded = load_episodes("test/random-v0", task=TASK, action_dim=4, progress=False)
+    assert len(loaded) == 3
+    for original, episode in zip(random_episodes, loaded):
+        assert episode["obs"].shape == (21, 3, 64, 64) and episode["obs"].dtype == np.uint8
+        assert episode["action"].shape == (21, 4) and episode["action"].dtype == np.float32
+        for key in ("reward", "success", "terminal"):
+            assert episode[key].shape == (21,) and episode[key].dtype == np.float32, key
+        np.testing.assert_array_equal(episode["action"], original["action"])
+        np.testing.assert_array_equal(episode["reward"], original["reward"])
+        np.testing.assert_array_equal(episode["success"], original["success"])
+        assert episode["action"][0].sum() == 0 and episode["reward"][0] == 0 and episode["terminal"].sum() == 0
+        assert episode["reward"].sum() == pytest.approx(original["reward"].sum())
+        error = np.abs(episode["obs"].astype(int) - original["obs"]).mean()
+        assert error < 10.0 if jpeg else error == 0  # JPEG is lossy (~6 grey levels), raw is exact
+    replay = Replay(None, capacity=1000, rng=np.random.default_rng(0))
+    replay.add(loaded[0])  # the loaded layout is the replay's
+    assert set(replay.sample(2, 8)) == set(KEYS)
+
+
+def test_cli_collects_expert_and_random_inspects_merges_and_lists(capsys):
+    short = ["--set", "fast_render=true", "--set", "time_limit=90", "--episodes", "2", "--no-progress"]
+    assert main(["collect", "--task", TASK, "--policy", "expert", "--dataset-id", "test/expert-v0", *short]) == 0
+    assert main(["collect", "--task", TASK, "--policy", "random", "--dataset-id", "test/random-v0", *short]) == 0
+    assert "wrote test/random-v0" in capsys.readouterr().out
+
+    rates = {}
+    for source in ("expert", "random"):
+        assert main(["inspect", f"test/{source}-v0", "--no-progress"]) == 0
+        out = capsys.readouterr().out
+        assert "episodes        2" in out and "steps           180 (90 per episode)" in out
+        assert f"source          {source}" in out and "normalised" in out and "bytes per frame" in out
+        rates[source] = float(re.search(r"success rate\s+(\d+)%", out).group(1))
+    assert rates["expert"] > rates["random"], rates  # the scripted expert closes the drawer in ~80 steps
+
+    assert main(["merge", "test/random-v0", "test/expert-v0", "--out", "test/medexp-v0", "--no-progress"]) == 0
+    merged = load_episodes("test/medexp-v0", task=TASK, action_dim=4, progress=False)
+    parts = load_episodes("test/random-v0", progress=False) + load_episodes("test/expert-v0", progress=False)
+    assert [e["reward"].sum() for e in merged] == pytest.approx([e["reward"].sum() for e in parts])
+    assert minari.load_dataset("test/medexp-v0").combined_datasets == ["test/random-v0", "test/expert-v0"]
+
+    capsys.readouterr()
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    for dataset_id in ("test/expert-v0", "test/random-v0", "test/medexp-v0"):
+        assert dataset_id in out
+
+
+def test_collect_from_a_runs_replay_and_with_its_agent(tmp_path, tiny_config, capsys):
+    rundir = tmp_path / "run"
+    cfg = tiny_config(task=TASK, agent="scratch", deter=16, stoch=4, action_repeat=1, time_limit=10, fast_render=True)
+    (rundir / "replay").mkdir(parents=True)
+    (rundir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg)))
+    env = make_env(TASK, seed=0, fast_render=True, time_limit=10)
+    replay = Replay(rundir / "replay", capacity=1000, rng=np.random.default_rng(0))
+    for _ in range(2):
+        replay.add(play_episode(env, RandomPolicy(env.action_space)))
+    env.close()
+    save_checkpoint(rundir / CHECKPOINT, build_agent(cfg, 4, None, torch.device("cpu")), cfg, {}, "")
+
+    assert main(["collect", "--from-run", str(rundir), "--dataset-id", "test/replay-v0", "--no-progress"]) == 0
+    episodes = load_episodes("test/replay-v0", task=TASK, action_dim=4, progress=False)
+    assert [e["reward"].sum() for e in episodes] == pytest.approx([e["reward"].sum() for e in replay.episodes])
+
+    args = ["collect", "--policy", "agent", "--checkpoint", str(rundir), "--device", "cpu", "--episodes", "1",
+            "--dataset-id", "test/agent-v0", "--no-progress"]
+    assert main(args) == 0
+    (episode,) = load_episodes("test/agent-v0", task=TASK, action_dim=4, progress=False)
+    assert episode["obs"].shape == (11, 3, 64, 64)  # the run's time limit
+    assert main(["collect", "--from-run", str(rundir), "--task", "dmc_cheetah_run", "--dataset-id", "test/x-v0"]) == 2
+    assert "trained on metaworld_drawer_close" in capsys.readouterr().err
+
+
+def test_missing_malformed_and_existing_ids_are_refused_with_what_exists(random_episodes, capsys):
+    with pytest.raises(DatasetError, match="there are none"):
+        load_episodes("test/nothing-v0")
+    write_dataset("test/random-v0", iter(random_episodes[:1]), {"task": TASK, "source": "random"})
+    with pytest.raises(DatasetError, match=r"not found under MINARI_DATASETS_PATH=.*the datasets there: test/random-v0"):
+        load_episodes("test/nothing-v0")
+    with pytest.raises(DatasetError, match="not a Minari ID"):
+        load_episodes("test/no-version")
+    with pytest.raises(DatasetError, match="already exists"):
+        write_dataset("test/random-v0", iter(random_episodes[:1]), {"task": TASK})
+    with pytest.raises(DatasetError, match="collected on metaworld_drawer_close, not metaworld_dial_turn"):
+        load_episodes("test/random-v0", task="metaworld_dial_turn", action_dim=4)
+    with pytest.raises(DatasetError, match="actions have 4 dimensions, dmc_cheetah_run has 6"):
+        load_episodes("test/random-v0", task="dmc_cheetah_run", action_dim=6)
+    assert main(["inspect", "test/nothing-v0"]) == 2
+    assert "hauwm datasets: error: dataset 'test/nothing-v0' not found" in capsys.readouterr().err
+    write_dataset("test/dial-v0", iter(random_episodes[:1]), {"task": "metaworld_dial_turn"})
+    with pytest.raises(DatasetError, match="cannot merge datasets with different task"):
+        merge_datasets(["test/random-v0", "test/dial-v0"], "test/both-v0")
+
+
+def test_images_are_found_and_resized_or_refused():
+    steps = 3
+    chw = gymnasium.spaces.Box(0, 255, (3, 84, 84), np.uint8)
+    write_foreign("other/chw84-v0", chw, np.full((steps + 1, 3, 84, 84), 200, np.uint8))
+    (episode,) = load_episodes("other/chw84-v0", action_dim=4, progress=False)
+    assert episode["obs"].shape == (steps + 1, 3, 64, 64) and (episode["obs"] == 200).all()  # INTER_AREA resize
+    assert episode["success"].shape == (steps + 1,) and not episode["success"].any()  # no success in this suite
+
+    pixels = gymnasium.spaces.Dict({"pixels": gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8),
+                                    "state": gymnasium.spaces.Box(-1, 1, (5,), np.float64)})
+    write_foreign("other/dict-v0", pixels, {"pixels": np.zeros((steps + 1, 64, 64, 3), np.uint8),
+                                            "state": np.zeros((steps + 1, 5))})
+    assert load_episodes("other/dict-v0", progress=False)[0]["obs"].shape == (steps + 1, 3, 64, 64)
+
+    wide = gymnasium.spaces.Box(0, 255, (32, 96, 3), np.uint8)
+    write_foreign("other/wide-v0", wide, np.zeros((steps + 1, 32, 96, 3), np.uint8))
+    with pytest.raises(DatasetError, match="images are 32x96, too far from square"):
+        load_episodes("other/wide-v0")
+    state = gymnasium.spaces.Box(-1, 1, (39,), np.float64)
+    write_foreign("other/state-v0", state, np.zeros((steps + 1, 39)))
+    with pytest.raises(DatasetError, match="are not RGB images"):
+        load_episodes("other/state-v0")
+
+
+def test_bad_actions_missing_rewards_and_empty_datasets_are_refused(random_episodes):
+    frames = gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8)
+    obs = np.zeros((4, 64, 64, 3), np.uint8)
+    write_foreign("other/bounds-v0", frames, obs, gymnasium.spaces.Box(-2.0, 2.0, (4,), np.float32))
+    with pytest.raises(DatasetError, match=r"action bounds are \[-2, 2\]"):
+        load_episodes("other/bounds-v0", task=TASK, action_dim=4)
+    write_foreign("other/nan-v0", frames, obs, rewards=np.full(3, np.nan))
+    with pytest.raises(DatasetError, match="rewards are missing"):
+        load_episodes("other/nan-v0")
+
+    dataset = write_dataset("test/norewards-v0", iter(random_episodes[:1]), {"task": TASK})
+    with h5py.File(dataset.storage.data_path / "main_data.hdf5", "a") as f:
+        del f["episode_0/rewards"]
+    with pytest.raises(DatasetError, match="episode 0 could not be read.*rewards"):
+        load_episodes("test/norewards-v0")
+
+    with pytest.warns(UserWarning):
+        minari.create_dataset_from_buffers("other/empty-v0", [], observation_space=frames,
+                                           action_space=gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32))
+    with pytest.raises(DatasetError, match="holds no episodes"):
+        load_episodes("other/empty-v0")
+
+
+def test_tasks_without_a_scripted_expert_say_what_to_use(capsys):
+    args = ["collect", "--task", "dmc_cartpole_swingup", "--policy", "expert", "--episodes", "1",
+            "--dataset-id", "test/x-v0", "--set", "time_limit=5", "--no-progress"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "dmc_cartpole_swingup has no scripted expert" in err and "--policy agent --checkpoint RUNDIR" in err
+
+
+def test_bad_env_settings_are_refused(capsys):
+    base = ["collect", "--task", TASK, "--policy", "random", "--episodes", "1", "--dataset-id", "test/x-v0"]
+    for setting, message in (("time_limit=abc", "time_limit must be a whole number"), ("fast_render=2", "true or false"),
+                             ("image_size=32", "not an env setting"), ("time_limit=600", "exceeds Meta-World's")):
+        assert main([*base, "--set", setting]) == 2, setting
+        assert message in capsys.readouterr().err, setting
