@@ -15,6 +15,7 @@ resolved config.yaml to `<trainer.default_root_dir>/lightning_logs/version_N/`.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import warnings
 from pathlib import Path
@@ -25,8 +26,35 @@ USAGE = __doc__.split("\n\n")[1]
 LIGHTNING_COMMANDS = ("fit", "validate")
 
 
+def refuse_flat_sizes(args: list[str]) -> None:
+    """The sizes moved under model.world_model: name an old-style flag or config key and its new place
+    (the parser alone would only say that `model` does not accept it)."""
+    import yaml
+
+    from model.config import ConfigError, WorldModelConfig
+
+    sizes = {field.name for field in dataclasses.fields(WorldModelConfig)}
+    for index, arg in enumerate(args):
+        flag, _, value = arg.partition("=")
+        if flag.startswith("--model.") and flag.removeprefix("--model.") in sizes:
+            raise ConfigError(f"{flag} is now --model.world_model.{flag.removeprefix('--model.')} (model/config.py)")
+        if flag not in ("--config", "-c"):
+            continue
+        path = Path(value or (args[index + 1] if index + 1 < len(args) else ""))
+        try:
+            config = yaml.safe_load(path.read_text()) if path.is_file() else None
+        except yaml.YAMLError:
+            continue  # the parser reports it
+        model = config.get("model") if isinstance(config, dict) else None
+        flat = sorted(sizes & set(model)) if isinstance(model, dict) else []
+        if flat:
+            raise ConfigError(f"{path}: model.{flat[0]} (like every size) now belongs under model.world_model, "
+                              f"e.g. `model: {{world_model: {{{flat[0]}: {model[flat[0]]}}}}}` (model/config.py)")
+
+
 def lightning_cli(args: list[str]):
     """Run a LightningCLI subcommand over PretrainModule and the shard DataModule."""
+    refuse_flat_sizes(args)
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.cli import LightningCLI
 

@@ -93,3 +93,15 @@ def test_help_lists_the_sizes_under_model_world_model(capsys, tmp_path):
     out = capsys.readouterr().out
     assert "--model.world_model.deter DETER" in out and "size of the deterministic (GRU) state" in out
     assert "--model.deter" not in out
+
+
+def test_sizes_in_the_old_flat_place_are_refused_with_their_new_place(capsys, tmp_path):
+    assert main(["fit", "--config", str(CONFIGS / "tiny.yaml"), "--data.shards", str(tmp_path),
+                 "--model.deter", "48", "--print_config"]) == 2
+    assert "--model.deter is now --model.world_model.deter" in capsys.readouterr().err
+    old = tmp_path / "old.yaml"
+    old.write_text("model:\n  deter: 48\n  lr: 1.0e-3\n")
+    assert main(["fit", "--config", str(CONFIGS / "tiny.yaml"), f"--config={old}", "--data.shards", str(tmp_path),
+                 "--print_config"]) == 2
+    err = capsys.readouterr().err
+    assert f"{old}: model.deter (like every size) now belongs under model.world_model" in err and "Traceback" not in err
