@@ -60,7 +60,7 @@ def refuse_other_size(saved: Mapping[str, Any], asked: WorldModelConfig, source:
     """Raise ConfigError if a checkpoint's world-model settings (its hyper_parameters) differ from this run's."""
     asked_settings = asked.to_dict()
     different = [f"{key}: checkpoint {value!r} vs this run {asked_settings.get(key)!r}"
-                 for key, value in saved_settings(saved).items() if value != asked_settings[key]]
+                 for key, value in saved_settings(saved).items() if value != asked_settings.get(key)]
     if different:
         raise ConfigError(
             f"{source} was trained with a different model size ({', '.join(different)}); resume with the "
