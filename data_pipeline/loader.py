@@ -41,7 +41,6 @@ import random
 import signal
 import threading
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
@@ -323,7 +322,10 @@ class ResumableDataLoader(DataLoader):
         return {"epoch": self.dataset.epoch, "batches": int(self.batches_done())}
 
     def load_state_dict(self, state: dict) -> None:
-        self.dataset.resume_at(state["epoch"], state["batches"])
+        epoch, batches = state["epoch"], state["batches"]
+        if batches >= len(self):  # saved after an epoch's last batch: Lightning goes on with the next epoch, from
+            epoch, batches = epoch + 1, 0  # this iterator and without the epoch-start hooks (so without SetEpoch)
+        self.dataset.resume_at(epoch, batches)
 
     def __iter__(self) -> Iterator[dict]:
         batches = self._fetch(super().__iter__)  # starts the workers the first time, then tells them an epoch began
@@ -340,10 +342,10 @@ class ResumableDataLoader(DataLoader):
     def _fetch(self, wait: Callable):
         """`wait()`, with a worker that died before or during it, or a batch that did not come in time, raised as
         a `LoaderError` naming each dead worker, the shard it was reading and the likely cause."""
-        if report := self._dead_workers_report():
-            raise LoaderError(report)
-        _FETCHING.set()
+        _FETCHING.set()  # first: a death from here on interrupts, one before is seen by the check
         try:
+            if report := self._dead_workers_report():
+                raise LoaderError(report)
             return wait()
         except (RuntimeError, OSError, EOFError) as error:
             failure = error

@@ -255,7 +255,7 @@ def test_a_shard_repacked_by_gnu_tar_reads_the_same(built_shards, tmp_path):
         assert list(read_samples(copy, "repacked")) == list(read_samples(original, "original"))
 
 
-@pytest.mark.parametrize("stop_at", [5, 9])  # mid-epoch (an epoch here is 6 batches), and inside the second epoch
+@pytest.mark.parametrize("stop_at", [5, 6, 9])  # mid-epoch (an epoch here is 6 batches), at its end, inside the second
 def test_resuming_mid_epoch_continues_the_data_stream_exactly(built_shards, tmp_path, stop_at):
     """A run stopped at step `stop_at` and resumed from its checkpoint sees the same batches, in the same
     order, as an uninterrupted run: the epoch's shard order and the position inside the epoch come back."""
