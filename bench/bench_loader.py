@@ -1,18 +1,23 @@
-"""Loader throughput: sequences/s per core at L = 16 (aim: at least 1,000), in-process and with 2 workers.
+"""Loader throughput: sequences/s per core at L = 16 (aim: at least 1,000), in-process and with 2 workers,
+and over many short epochs with the workers started once against workers restarted every epoch.
 
 Builds shards from the built-in sample data (`--encoding jpeg` or `raw`; or uses `--shards DIR`), then
 times `SequenceDataset` (tar reading, shuffle buffer, gap sampling, decoding only the L sampled frames,
 collation into the batch) in the main process (torch and OpenCV limited to one thread) and through a
-DataLoader with 2 workers. Reports wall-clock rates and rates per CPU second (CPU time of the process and
-its workers), which stay meaningful on a machine shared with other jobs.
+DataLoader with 2 workers, first over one long epoch, then over `--epochs` epochs of `--epoch-batches`
+batches (a small dataset, or many GPUs: issue 12 had 7 steps an epoch) with `make_dataloader`'s persistent
+workers and with a DataLoader that starts its workers every epoch (the loader before issue 12). Reports
+wall-clock rates and rates per CPU second (CPU time of the process and its workers, counted once the
+workers have exited), which stay meaningful on a machine shared with other jobs.
 
     python bench/bench_loader.py [--shards DIR | --encoding jpeg|raw] [--seq-len 16] [--batch-size 32]
-                                 [--batches 150]
+                                 [--batches 150] [--epochs 40] [--epoch-batches 4]
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import platform
 import resource
@@ -26,9 +31,11 @@ sys.path.insert(0, str(ROOT))
 
 import cv2  # noqa: E402
 import torch  # noqa: E402
+from torch.utils.data import DataLoader  # noqa: E402
 
 from data_pipeline.build import BuildConfig, build  # noqa: E402
-from data_pipeline.loader import SequenceDataset, make_dataloader, read_manifest, shard_set  # noqa: E402
+from data_pipeline.loader import (SequenceDataset, _init_worker, make_dataloader, read_manifest,  # noqa: E402
+                                  shard_set)
 from data_pipeline.sample_data import make_sample_data  # noqa: E402
 
 
@@ -44,12 +51,29 @@ def cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
-def time_batches(batches) -> tuple[float, float, int]:
-    """Wall seconds, CPU seconds and sequences of one pass (start-up included: workers, first shards)."""
+def time_epochs(dataset: SequenceDataset, make_batches, epochs: int = 1) -> tuple[float, float, int]:
+    """Wall seconds, CPU seconds and sequences of `epochs` passes over `make_batches(dataset)` (start-up
+    included: workers, first shards; and the workers' shut-down, so that their CPU time is counted)."""
     started, cpu_started, sequences = time.perf_counter(), cpu_seconds(), 0
-    for batch in batches:
-        sequences += len(batch["id"])
+    batches = make_batches(dataset)
+    for epoch in range(epochs):
+        dataset.set_epoch(epoch)
+        for batch in batches:
+            sequences += len(batch["id"])
+    del batches
+    gc.collect()  # persistent workers exit with their loader
     return time.perf_counter() - started, cpu_seconds() - cpu_started, sequences
+
+
+def restarting_workers(dataset: SequenceDataset) -> DataLoader:
+    """A DataLoader that starts its workers at every epoch (what `make_dataloader` did before issue 12)."""
+    return DataLoader(dataset, batch_size=None, num_workers=dataset.num_workers, persistent_workers=False,
+                      worker_init_fn=_init_worker)
+
+
+def report(label: str, seconds: float, cpu: float, sequences: int, seq_len: int) -> None:
+    print(f"{label}: {sequences / seconds:.0f} sequences/s wall, {sequences / cpu:.0f} sequences "
+          f"({sequences * seq_len / cpu:.0f} frames) per CPU second")
 
 
 def main() -> None:
@@ -60,6 +84,8 @@ def main() -> None:
     parser.add_argument("--k-max", type=int, default=5)
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--batches", type=int, default=150, help="batches to time per setting")
+    parser.add_argument("--epochs", type=int, default=40, help="short epochs to time with 2 workers")
+    parser.add_argument("--epoch-batches", type=int, default=4, help="batches per short epoch")
     args = parser.parse_args()
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -75,14 +101,19 @@ def main() -> None:
     encoding = read_manifest(shards)["settings"]["encoding"]
     print(f"settings: L={args.seq_len}, K_max={args.k_max}, batch {args.batch_size}, shuffle buffer 256, "
           f"{encoding} shards {shards}")
+    settings = dict(batch_size=args.batch_size, seq_len=args.seq_len, k_max=args.k_max)
     for workers in (0, 2):
-        dataset = SequenceDataset(shard_set(shards, "train"), batch_size=args.batch_size, seq_len=args.seq_len,
-                                  k_max=args.k_max, num_workers=workers,
-                                  batches_per_worker=args.batches // max(1, workers))
-        seconds, cpu, sequences = time_batches(dataset if workers == 0 else make_dataloader(dataset))
-        label = "main process" if workers == 0 else f"DataLoader, {workers} workers"
-        print(f"{label}: {sequences / seconds:.0f} sequences/s wall, {sequences / cpu:.0f} sequences "
-              f"({sequences * args.seq_len / cpu:.0f} frames) per CPU second")
+        dataset = SequenceDataset(shard_set(shards, "train"), num_workers=workers,
+                                  batches_per_worker=args.batches // max(1, workers), **settings)
+        timing = time_epochs(dataset, (lambda d: d) if workers == 0 else make_dataloader)
+        report("main process" if workers == 0 else f"DataLoader, {workers} workers", *timing, args.seq_len)
+    for label, make_batches in (("workers started once", make_dataloader),
+                                ("workers restarted every epoch", restarting_workers)):
+        dataset = SequenceDataset(shard_set(shards, "train"), num_workers=2,
+                                  batches_per_worker=args.epoch_batches // 2, **settings)
+        timing = time_epochs(dataset, make_batches, args.epochs)
+        report(f"2 workers, {args.epochs} epochs of {args.epoch_batches} batches, {label}", *timing, args.seq_len)
+
 
 if __name__ == "__main__":
     main()

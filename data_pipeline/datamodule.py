@@ -4,7 +4,8 @@ reshuffles the shards every epoch (Lightning does not call `set_epoch` on an Ite
 Train: shards shuffled with `seed + epoch`, split by rank and worker, a shuffle buffer, and the same
 number of batches on every rank (see `loader.py`). Validation: a fixed order and a fixed seed, so
 every evaluation sees the same `val_batches` batches (rounded down to a multiple of the workers) with
-the same gaps, for the per-k metrics the model computes from `gaps`.
+the same gaps, for the per-k metrics the model computes from `gaps`. The workers of both loaders start
+once and stay for the whole fit (see `loader.py` for how they follow the epoch).
 
     trainer = lightning.Trainer(callbacks=[SetEpoch()])
     trainer.fit(model, datamodule=ShardDataModule("demo-out/shards", batch_size=8))
@@ -20,7 +21,8 @@ from .loader import LoaderError, SequenceDataset, make_dataloader, read_manifest
 
 
 class SetEpoch(lightning.Callback):
-    """Sets the train dataset's epoch at the start of each epoch, before the DataLoader starts its workers."""
+    """Sets the train dataset's epoch at the start of each epoch, before Lightning creates the epoch's iterator
+    (from epoch 1 on; epoch 0's iterator exists already and reads epoch 0, the dataset's initial value)."""
 
     def on_train_epoch_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
         dataset = getattr(trainer.train_dataloader, "dataset", None)
@@ -31,9 +33,10 @@ class SetEpoch(lightning.Callback):
 class ShardDataModule(lightning.LightningDataModule):
     def __init__(self, shards: str, train_split: str = "train", val_split: str = "validation", batch_size: int = 32,
                  seq_len: int = 16, k_max: int = 5, num_workers: int = 2, shuffle_buffer: int = 256, seed: int = 0,
-                 val_batches: int = 8, shard_url: str | None = None):
+                 val_batches: int = 8, shard_url: str | None = None, timeout: float = 600.0):
         """`shards`: a shard directory (with manifest.json). `shard_url`: optional URL template for the tars,
-        e.g. `"pipe:aws s3 cp s3://bucket/shards/{name} -"`, with the manifest copied to `shards`."""
+        e.g. `"pipe:aws s3 cp s3://bucket/shards/{name} -"`, with the manifest copied to `shards`. `timeout`:
+        seconds a loader worker may take for one batch before the run stops with an error naming its shard."""
         super().__init__()
         self.save_hyperparameters()
         self.train_set: SequenceDataset | None = None
@@ -63,10 +66,10 @@ class ShardDataModule(lightning.LightningDataModule):
                           "epoch reads the shards in the same order", stacklevel=2)
         # Lightning warns that a sized IterableDataset may be inaccurate with workers; ours splits per worker.
         warnings.filterwarnings("ignore", message=".*`IterableDataset` has `__len__` defined")
-        loader = make_dataloader(self.train_set)
+        loader = make_dataloader(self.train_set, self.hparams.timeout)
         if self.trainer is not None:  # batches of this epoch trained on, for a checkpoint's data position
             loader.batches_done = lambda: self.trainer.fit_loop.epoch_loop.batch_progress.current.processed
         return loader
 
     def val_dataloader(self):
-        return make_dataloader(self.val_set)
+        return make_dataloader(self.val_set, self.hparams.timeout)

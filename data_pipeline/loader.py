@@ -9,10 +9,23 @@ pass after pass and stops after exactly
 
 so every rank runs the same number of steps (DDP would hang otherwise) however uneven the shards.
 A worker whose shards hold fewer clips than its share sees some clips twice; one with more sees some
-not at all this epoch (a new shuffle next epoch). Lightning does not call `set_epoch` on an
-IterableDataset: `data_pipeline.SetEpoch` (a callback) does it, before the workers are started.
+not at all this epoch (a new shuffle next epoch).
 
-The stages of one worker, a webdataset pipeline (the per-sequence cost at L = 16 is in bench/README.md):
+Workers start once and live for the whole fit (`persistent_workers`). The data position — the epoch and
+the batches of it already trained on — lives in a shared-memory tensor that the dataset creates before any
+worker starts. The main process writes it: `set_epoch` (the `SetEpoch` callback calls it; Lightning does not
+call `set_epoch` on an IterableDataset) and `resume_at` (from `ResumableDataLoader.load_state_dict`). Every
+`__iter__` reads it, in the main process or in a worker. The DataLoader calls `__iter__` in each worker when
+the worker starts and again at each `iter(loader)` (torch sends the workers `_ResumeIteration` after the main
+process wrote the position), so each epoch's iterator sees what a worker started for that epoch would.
+
+A failing worker becomes a `LoaderError` naming the worker, the shard it was reading (each worker notes it
+in a second shared tensor) and the likely cause. An exception inside a worker (an unreadable shard, frames
+that do not decode) is handed to the main process as the worker's last item and raised there; a worker that
+dies (SIGKILL: the out-of-memory killer; SIGBUS: /dev/shm full; a native crash) or stalls past `timeout`
+is reported where torch notices it, while the main process waits for a batch (`ResumableDataLoader`).
+
+The stages of one worker (the per-sequence cost at L = 16 is in bench/README.md):
 
     shard URLs → `shard_samples` (tar → samples) → shuffle buffer within the pass
       → `to_sequence` (JSON, L frame indices; too-short clips dropped) → groups of batch_size
@@ -22,7 +35,11 @@ The stages of one worker, a webdataset pipeline (the per-sequence cost at L = 16
 from __future__ import annotations
 
 import json
+import multiprocessing.connection
+import os
 import random
+import signal
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from itertools import islice
@@ -31,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import webdataset as wds
-from torch.utils.data import DataLoader, IterableDataset
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from webdataset.utils import pytorch_worker_info
 
 from .sampling import gaps_of, sample_indices
@@ -40,10 +57,22 @@ from .shard_format import decode_frames, read_samples
 MANIFEST_FILE = "manifest.json"
 BUILD_HINT = ("build it with `hauwm shards build --annotations DIR --videos DIR --out {dir}` "
               "(or `hauwm shards sample-data` first for the built-in data)")
+VERIFY_HINT = "check the shards with `hauwm shards inspect DIR --verify` and rebuild the broken one"
+RESUME_HINT = "the checkpoints written so far are intact: resume with `--ckpt_path RUN/checkpoints/last.ckpt`"
+# how torch's DataLoader iterator reports a worker that died or a batch that did not come in time
+TORCH_WORKER_FAILURES = ("DataLoader worker", "DataLoader timed out")
+DEATH_CAUSES = {
+    signal.SIGKILL: "killed by SIGKILL, most likely by the kernel's out-of-memory killer (`dmesg` says so): "
+                    "lower --data.num_workers, --data.shuffle_buffer or --data.batch_size, or give it more memory",
+    signal.SIGBUS: "killed by SIGBUS: the shared memory that carries batches from the workers (/dev/shm) is full: "
+                   "in Docker run with --shm-size 8g (or --ipc=host), or lower --data.num_workers or --data.batch_size",
+    signal.SIGSEGV: "crashed in native code (SIGSEGV; a frame decoder or another library): re-run with "
+                    f"--data.num_workers 0 to see where, and {VERIFY_HINT}",
+}
 
 
 class LoaderError(ValueError):
-    """A shard directory or loader setting that cannot work; the message says what to do."""
+    """A shard directory, loader setting or loader worker that cannot work; the message says what to do."""
 
 
 @dataclass(frozen=True)
@@ -84,10 +113,12 @@ def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -
 
 def shard_samples(sources: Iterator[dict]) -> Iterator[dict]:
     """webdataset stage: `{"url": ...}` (a path or a `pipe:` command, opened by webdataset's `gopen`) → the
-    shard's tar samples `{"__key__", "json", "jpgs" | "npy"}`, in clip order."""
+    shard's tar samples `{"__key__", "__url__", "json", "jpgs" | "npy"}`, in clip order."""
     for source in sources:
         stream = wds.gopen(source["url"])
-        yield from read_samples(stream, source["url"])
+        for sample in read_samples(stream, source["url"]):
+            sample["__url__"] = source["url"]
+            yield sample
         stream.read()  # the tar's trailing zero blocks: a `pipe:` command finishes before it is closed
         stream.close()
 
@@ -101,17 +132,26 @@ def to_sequence(sample: dict, seq_len: int, k_max: int, rng: np.random.Generator
         return None
     extension = "jpgs" if "jpgs" in sample else "npy"
     return {"frames_member": sample[extension], "extension": extension, "indices": indices,
-            "num_frames": metadata["num_frames"], "label": metadata["class_index"], "id": metadata["id"]}
+            "num_frames": metadata["num_frames"], "label": metadata["class_index"], "id": metadata["id"],
+            "url": sample["__url__"]}
+
+
+def decode_sequence(sequence: dict, indices, out: np.ndarray | None = None) -> np.ndarray:
+    """`decode_frames` for one sequence's frames member; frames that do not decode name the clip and its shard."""
+    try:
+        return decode_frames(sequence["frames_member"], sequence["extension"], indices, out=out)
+    except Exception as error:
+        raise LoaderError(f"clip {sequence['id']} of shard {sequence['url']}: its frames do not decode "
+                          f"({type(error).__name__}: {error}); {VERIFY_HINT}") from error
 
 
 def collate(sequences: list[dict]) -> dict:
     """Sequences → the batch of docs/architecture.md §2, decoding only the L sampled frames of each clip."""
-    height, width = decode_frames(sequences[0]["frames_member"], sequences[0]["extension"], [0]).shape[1:3]
+    height, width = decode_sequence(sequences[0], [0]).shape[1:3]
     frames = torch.empty((len(sequences), len(sequences[0]["indices"]), 3, height, width), dtype=torch.uint8)
     for slot, sequence in zip(frames.numpy(), sequences):  # slot: [L, 3, H, W]
         # the decoded [L, H, W, 3] frames are written transposed straight into their slot (no second pass)
-        decode_frames(sequence["frames_member"], sequence["extension"], sequence["indices"],
-                      out=slot.transpose(0, 2, 3, 1))
+        decode_sequence(sequence, sequence["indices"], out=slot.transpose(0, 2, 3, 1))
     indices = np.stack([s["indices"] for s in sequences])  # [B, L]
     return {
         "frames": frames,  # uint8 [B, L, 3, H, W]
@@ -150,15 +190,31 @@ class SequenceDataset(IterableDataset):
         self.urls = [url for url, _ in usable]
         self.batch_size, self.seq_len, self.k_max = batch_size, seq_len, k_max
         self.shuffle, self.shuffle_buffer, self.seed = shuffle, shuffle_buffer, seed
-        self.epoch = 0
-        self.skip_batches = 0  # batches of this epoch already trained on (a resumed run), per rank
+        # shared with the DataLoader workers (created before they start): [epoch, batches of it already trained
+        # on per rank (a resumed run)], written by the main process, read by every `__iter__`
+        self._position = torch.zeros(2, dtype=torch.int64).share_memory_()
+        # per worker, the index in `urls` of the shard it is reading (-1: none yet), for error messages
+        self._reading = torch.full((self.workers,), -1, dtype=torch.int64).share_memory_()
+
+    @property
+    def epoch(self) -> int:
+        return int(self._position[0])
+
+    @property
+    def skip_batches(self) -> int:
+        return int(self._position[1])
 
     def set_epoch(self, epoch: int) -> None:
-        self.epoch, self.skip_batches = epoch, 0
+        self.resume_at(epoch, 0)
 
     def resume_at(self, epoch: int, batches: int) -> None:
         """The next iterator continues epoch `epoch` after its first `batches` batches (per rank)."""
-        self.epoch, self.skip_batches = epoch, batches
+        self._position[0], self._position[1] = epoch, batches
+
+    def reading(self, worker: int) -> str:
+        """The shard worker `worker` of this rank is reading (or read last)."""
+        index = int(self._reading[worker])
+        return self.urls[index] if index >= 0 else "(none yet)"
 
     def __len__(self) -> int:
         return self.batches_per_worker * self.workers
@@ -172,19 +228,25 @@ class SequenceDataset(IterableDataset):
             random.Random(self.seed + self.epoch).shuffle(urls)
         return list(wds.split_by_node(urls))[worker :: self.workers]
 
-    def _passes(self, urls: list[str], rng: np.random.Generator) -> Iterator[dict]:
+    def _sources(self, urls: list[str], worker: int) -> Iterator[dict]:
+        """webdataset shard sources `{"url"}`, noting in shared memory which shard `worker` opens."""
+        for url in urls:
+            self._reading[worker] = self.urls.index(url)
+            yield {"url": url}
+
+    def _passes(self, urls: list[str], rng: np.random.Generator, worker: int) -> Iterator[dict]:
         """Tar samples from this stream's shards, pass after pass (the batch cap ends the epoch); each
         pass in a new shard order, shuffled through the buffer within the pass, so no clip repeats
         before every clip of the stream has come once."""
         while True:
-            stages = [wds.SimpleShardList([urls[i] for i in rng.permutation(len(urls))] if self.shuffle else urls),
-                      shard_samples]
+            order = [urls[i] for i in rng.permutation(len(urls))] if self.shuffle else urls
+            samples = shard_samples(self._sources(order, worker))
             if self.shuffle and self.shuffle_buffer > 1:
-                stages.append(wds.shuffle(self.shuffle_buffer, initial=self.shuffle_buffer,
-                                          rng=random.Random(int(rng.integers(2**63)))))
-            yield from wds.DataPipeline(*stages)
+                samples = wds.shuffle(self.shuffle_buffer, initial=self.shuffle_buffer,
+                                      rng=random.Random(int(rng.integers(2**63))))(samples)
+            yield from samples
 
-    def __iter__(self) -> Iterator[dict]:
+    def __iter__(self) -> Iterator[dict | LoaderError]:
         """This worker's batches of the epoch. A DataLoader takes batch i from worker i mod W, and after a
         resume it still asks worker 0 first: so worker p plays stream (p + skip) mod W, which skips the
         sequences its stream already gave (without decoding them), and the batches come in the same order as
@@ -194,10 +256,26 @@ class SequenceDataset(IterableDataset):
         skipped = (self.skip_batches - stream + self.workers - 1) // self.workers  # batches this stream gave
         rng = np.random.default_rng([self.seed, self.epoch, rank, stream])
         urls = self.stream_urls(stream)
-        sequences = (to_sequence(sample, self.seq_len, self.k_max, rng) for sample in self._passes(urls, rng))
+        sequences = (to_sequence(sample, self.seq_len, self.k_max, rng)
+                     for sample in self._passes(urls, rng, process_worker))
         remaining = islice(filter(None, sequences), skipped * self.batch_size, None)
         batches = wds.batched(self.batch_size, collation_fn=collate, partial=False)(remaining)
-        return islice(batches, max(0, self.batches_per_worker - skipped))
+        return self._naming_the_shard(islice(batches, max(0, self.batches_per_worker - skipped)), process_worker)
+
+    def _naming_the_shard(self, batches: Iterator[dict], worker: int) -> Iterator[dict | LoaderError]:
+        """`batches`, with an error turned into a `LoaderError` naming the worker and the shard it was reading.
+        A DataLoader worker hands it over as its last item, which `ResumableDataLoader` raises (torch would
+        re-raise the exception with the worker's traceback pasted into its message); the main process raises it."""
+        try:
+            yield from batches
+        except Exception as error:
+            info = get_worker_info()
+            who = "the loader" if info is None else f"DataLoader worker {info.id} (pid {os.getpid()})"
+            cause = error if isinstance(error, LoaderError) else f"{type(error).__name__}: {error}"
+            failure = LoaderError(f"{who}, reading shard {self.reading(worker)}: {cause}")
+            if info is None:
+                raise failure from error
+            yield failure
 
 
 def _init_worker(_: int) -> None:
@@ -207,11 +285,36 @@ def _init_worker(_: int) -> None:
     torch.set_num_threads(1)
 
 
+_FETCHING = threading.Event()  # set while the main thread waits for a batch of a ResumableDataLoader
+
+
+def _defer_worker_deaths() -> None:
+    """torch's SIGCHLD handler raises "DataLoader worker (pid N) is killed by signal" wherever the main thread
+    is when a worker dies: inside the training step, a checkpoint save, compiled code. Wrap it (once) so that it
+    raises only while the main thread waits for a batch, where `ResumableDataLoader` turns it into a
+    `LoaderError`; a death at any other moment is found by the loader's check of its workers before each batch."""
+    handler = signal.getsignal(signal.SIGCHLD)
+    if not callable(handler) or getattr(handler, "defers_worker_deaths", False) \
+            or threading.current_thread() is not threading.main_thread():
+        return
+
+    def deferring(signum, frame) -> None:
+        try:
+            handler(signum, frame)
+        except RuntimeError as error:
+            if _FETCHING.is_set() or not str(error).startswith(TORCH_WORKER_FAILURES):
+                raise
+
+    deferring.defers_worker_deaths = True
+    signal.signal(signal.SIGCHLD, deferring)
+
+
 class ResumableDataLoader(DataLoader):
-    """A DataLoader that Lightning resumes inside an epoch. Lightning stores `state_dict()` in every
-    checkpoint and, on resume, calls `load_state_dict()` right before it creates the resumed epoch's
-    iterator (before any epoch hook could set the epoch). `batches_done` reports how many batches of the
-    current epoch the training loop has consumed (the data module points it at the Trainer's progress)."""
+    """A DataLoader that Lightning resumes inside an epoch and whose worker failures name the worker, the shard
+    and the likely cause. Lightning stores `state_dict()` in every checkpoint and, on resume, calls
+    `load_state_dict()` right before it creates the resumed epoch's iterator (before any epoch hook could set
+    the epoch). `batches_done` reports how many batches of the current epoch the training loop has consumed
+    (the data module points it at the Trainer's progress)."""
 
     batches_done: Callable[[], int] = staticmethod(lambda: 0)
 
@@ -219,12 +322,87 @@ class ResumableDataLoader(DataLoader):
         return {"epoch": self.dataset.epoch, "batches": int(self.batches_done())}
 
     def load_state_dict(self, state: dict) -> None:
-        self.dataset.resume_at(state["epoch"], state["batches"])
+        epoch, batches = state["epoch"], state["batches"]
+        if batches >= len(self):  # saved after an epoch's last batch: Lightning goes on with the next epoch, from
+            epoch, batches = epoch + 1, 0  # this iterator and without the epoch-start hooks (so without SetEpoch)
+        self.dataset.resume_at(epoch, batches)
+
+    def __iter__(self) -> Iterator[dict]:
+        batches = self._fetch(super().__iter__)  # starts the workers the first time, then tells them an epoch began
+        if self.num_workers > 0:
+            _defer_worker_deaths()
+        return self._raising_worker_errors(batches)
+
+    def _raising_worker_errors(self, batches: Iterator[dict | LoaderError]) -> Iterator[dict]:
+        while (batch := self._fetch(lambda: next(batches, None))) is not None:
+            if isinstance(batch, LoaderError):  # an error inside a worker, handed over as its last item
+                raise batch
+            yield batch
+
+    def _fetch(self, wait: Callable):
+        """`wait()`, with a worker that died before or during it, or a batch that did not come in time, raised as
+        a `LoaderError` naming each dead worker, the shard it was reading and the likely cause."""
+        _FETCHING.set()  # first: a death from here on interrupts, one before is seen by the check
+        try:
+            if report := self._dead_workers_report():
+                raise LoaderError(report)
+            return wait()
+        except (RuntimeError, OSError, EOFError) as error:
+            failure = error
+        finally:
+            _FETCHING.clear()
+        report = self._failure_report(failure)
+        if report is None:
+            raise failure
+        raise LoaderError(report) from failure
+
+    def _worker_processes(self) -> list:
+        """The worker processes of the iterator torch keeps for persistent workers (none before the first
+        `iter()` and after a shutdown), in worker order."""
+        iterator = self._iterator
+        return [] if iterator is None or iterator._shutdown else iterator._workers
+
+    def _dead_workers_report(self) -> str | None:
+        dead = [(worker, process) for worker, process in enumerate(self._worker_processes())
+                if not process.is_alive()]
+        if not dead:
+            return None
+        return "; ".join(f"DataLoader worker {worker} (pid {process.pid}) died while reading shard "
+                         f"{self.dataset.reading(worker)}: {_death_cause(process.exitcode)}"
+                         for worker, process in dead) + f"; {RESUME_HINT}"
+
+    def _failure_report(self, error: Exception) -> str | None:
+        """What to tell about `error`; None when no worker failure explains it. Besides torch's RuntimeErrors, a
+        worker killed while a batch of it waited in the queue makes receiving that batch fail with a broken
+        connection (the batch's shared memory goes with it), possibly before its death is visible: wait for it."""
+        torch_reports = isinstance(error, RuntimeError) and str(error).startswith(TORCH_WORKER_FAILURES)
+        if isinstance(error, RuntimeError) and not torch_reports:
+            return None
+        timed_out = str(error).startswith("DataLoader timed out")
+        if (processes := self._worker_processes()) and not timed_out:
+            multiprocessing.connection.wait([process.sentinel for process in processes], timeout=5.0)
+        if (report := self._dead_workers_report()) or not torch_reports:
+            return report
+        reading = ", ".join(f"worker {worker} reading shard {self.dataset.reading(worker)}"
+                            for worker in range(self.num_workers))
+        if timed_out:
+            return (f"no batch came from the DataLoader workers for {self.timeout:.0f} s ({reading}): a `pipe:` "
+                    f"command or a file system that stalls; raise --data.timeout if fetching a shard takes longer; "
+                    f"{RESUME_HINT}")
+        return f"{error} ({reading}); {RESUME_HINT}"
 
 
-def make_dataloader(dataset: SequenceDataset) -> ResumableDataLoader:
-    """Batches come collated from the dataset, so `batch_size=None`; workers restart every epoch
-    (`persistent_workers=False`) so they see the epoch `SetEpoch` set."""
+def _death_cause(exitcode: int | None) -> str:
+    if exitcode is None or exitcode >= 0:
+        return f"it exited (status {exitcode}) with batches still to give: re-run with --data.num_workers 0 to see why"
+    return DEATH_CAUSES.get(-exitcode, f"killed by signal {-exitcode} ({signal.strsignal(-exitcode)})")
+
+
+def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0) -> ResumableDataLoader:
+    """Batches come collated from the dataset, so `batch_size=None`. With workers, they start once and stay for
+    the whole run (`persistent_workers`; each epoch's iterator reads the position from shared memory), and a
+    worker that gives no batch for `timeout` seconds is reported as stalled."""
+    workers = dataset.num_workers > 0
     return ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
-                               worker_init_fn=_init_worker, persistent_workers=False,
-                               pin_memory=torch.cuda.is_available())
+                               worker_init_fn=_init_worker, persistent_workers=workers,
+                               timeout=timeout if workers else 0, pin_memory=torch.cuda.is_available())

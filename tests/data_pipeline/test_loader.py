@@ -1,7 +1,9 @@
 """The loader: batch format, gaps U{1..K_max}, frames equal the stored ones, equal batch counts on every
-rank and worker over uneven shards, the epoch reshuffle, and the LightningDataModule around it."""
+rank and worker over uneven shards, the epoch reshuffle, persistent workers that follow the epoch and the
+resume position, and the LightningDataModule around it."""
 
 import json
+import multiprocessing
 import tarfile
 from collections import Counter
 
@@ -10,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.stats import chisquare
+from torch.utils.data import DataLoader
 
 from data_pipeline import SetEpoch, ShardDataModule
 from data_pipeline.loader import LoaderError, SequenceDataset, make_dataloader, shard_set
@@ -108,6 +111,47 @@ def test_each_epoch_reshuffles_and_an_epoch_replays_exactly(built_shards):
     assert orders[0] != orders[2] and orders[2] != orders[3]
 
 
+def summary(batches) -> list:
+    """What identifies a list of batches: the clips, their frame indices and the frames themselves."""
+    return [(batch["id"], batch["indices"].tolist(), batch["frames"].sum().item()) for batch in batches]
+
+
+def worker_pids(before: frozenset = frozenset()) -> list[int]:
+    """The child processes alive now (DataLoader workers), less those in `before` (left by earlier tests)."""
+    return sorted({process.pid for process in multiprocessing.active_children()} - before)
+
+
+def test_persistent_workers_give_each_epoch_what_workers_started_for_it_give(built_shards):
+    shards = shard_set(built_shards, "train")
+    expected = []
+    for epoch in range(4):  # workers started for each epoch (the loader before persistent workers)
+        fresh = SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=2, seed=7)
+        fresh.set_epoch(epoch)
+        expected.append(summary(DataLoader(fresh, batch_size=None, num_workers=2)))
+    before = frozenset(worker_pids())
+    dataset = SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=2, seed=7)
+    loader = make_dataloader(dataset)
+    pids = []
+    for epoch in range(4):
+        dataset.set_epoch(epoch)
+        batches = iter(loader)
+        first = next(batches)
+        pids.append(worker_pids(before))
+        assert summary([first, *batches]) == expected[epoch]
+    assert len(pids[0]) == 2 and all(epoch_pids == pids[0] for epoch_pids in pids)  # started once
+    assert len({str(epoch) for epoch in expected}) == 4  # a new order every epoch
+
+
+def test_persistent_workers_follow_a_resume_position_set_between_epochs(built_shards):
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=2, seed=2)
+    loader = make_dataloader(dataset)
+    dataset.set_epoch(3)
+    whole_epoch = summary(loader)
+    for done in (3, 4, 0):
+        loader.load_state_dict({"epoch": 3, "batches": done})
+        assert summary(loader) == whole_epoch[done:]
+
+
 def test_pipe_urls_read_the_same_data(built_shards):
     local = SequenceDataset(shard_set(built_shards, "validation"), batch_size=3, seq_len=8, shuffle=False)
     piped = SequenceDataset(shard_set(built_shards, "validation", shard_url=f"pipe:cat {built_shards}/{{name}}"),
@@ -136,6 +180,16 @@ def test_datamodule_validates_its_inputs(built_shards, tmp_path):
         ShardDataModule(str(built_shards), val_split="test", batch_size=2, seq_len=8).setup("fit")
 
 
+class WorkerPids(lightning.Callback):
+    """The loader worker processes alive at the end of each training epoch."""
+
+    def __init__(self):
+        self.before, self.pids = frozenset(worker_pids()), []
+
+    def on_train_epoch_end(self, trainer, pl_module):
+        self.pids.append(worker_pids(self.before))
+
+
 class RecordingModel(lightning.LightningModule):
     """Records the clip ids of every batch; learns nothing."""
 
@@ -157,11 +211,14 @@ class RecordingModel(lightning.LightningModule):
 
 def test_lightning_fit_with_set_epoch_reshuffles_and_validates_deterministically(built_shards):
     data = ShardDataModule(str(built_shards), batch_size=2, seq_len=8, num_workers=2, val_batches=2, seed=1)
-    model = RecordingModel()
-    trainer = lightning.Trainer(max_epochs=3, accelerator="cpu", devices=1, callbacks=[SetEpoch()], logger=False,
-                                enable_checkpointing=False, enable_progress_bar=False, num_sanity_val_steps=0,
-                                enable_model_summary=False)
+    model, pids = RecordingModel(), WorkerPids()
+    trainer = lightning.Trainer(max_epochs=3, accelerator="cpu", devices=1, callbacks=[SetEpoch(), pids],
+                                logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                                num_sanity_val_steps=0, enable_model_summary=False)
     trainer.fit(model, datamodule=data)
+    # 2 train workers and 1 validation worker (the split has one shard), the same processes every epoch
+    assert len(pids.pids) == 3 and len(pids.pids[0]) == 3 and all(p == pids.pids[0] for p in pids.pids)
+    assert worker_pids(pids.before) == []  # shut down when the fit ends
     assert [len(ids) for ids in model.train_ids.values()] == [2 * 2 * (18 // 4)] * 3
     assert len({tuple(ids) for ids in model.train_ids.values()}) == 3  # a new order every epoch
     assert len(model.val_batches) == 3 * 2
@@ -198,7 +255,7 @@ def test_a_shard_repacked_by_gnu_tar_reads_the_same(built_shards, tmp_path):
         assert list(read_samples(copy, "repacked")) == list(read_samples(original, "original"))
 
 
-@pytest.mark.parametrize("stop_at", [5, 9])  # mid-epoch (an epoch here is 6 batches), and inside the second epoch
+@pytest.mark.parametrize("stop_at", [5, 6, 9])  # mid-epoch (an epoch here is 6 batches), at its end, inside the second
 def test_resuming_mid_epoch_continues_the_data_stream_exactly(built_shards, tmp_path, stop_at):
     """A run stopped at step `stop_at` and resumed from its checkpoint sees the same batches, in the same
     order, as an uninterrupted run: the epoch's shard order and the position inside the epoch come back."""

@@ -1,0 +1,156 @@
+"""A loader worker that fails stops the run with a `LoaderError` naming the worker, the shard it was reading and
+the likely cause — never a hang, never torch's bare traceback — and the checkpoints written before stay loadable."""
+
+import json
+import multiprocessing
+import os
+import shutil
+import signal
+import tarfile
+import threading
+import time
+from pathlib import Path
+
+import lightning
+import pytest
+import torch
+
+from data_pipeline import SetEpoch, ShardDataModule
+from data_pipeline.loader import LoaderError, SequenceDataset, make_dataloader, shard_set
+from data_pipeline.shard_format import add_clip, open_writer
+
+from test_loader import RecordingModel  # noqa: I001 (tests/data_pipeline/test_loader.py)
+
+pytestmark = pytest.mark.timeout(180)
+TINY_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "pretrain" / "tiny.yaml"
+
+
+def copy_with_broken_shard(built_shards, tmp_path, break_shard) -> tuple:
+    """A copy of the shard directory whose train-000001.tar `break_shard(path)` rewrites (the manifest unchanged)."""
+    copy = tmp_path / "shards"
+    shutil.copytree(built_shards, copy)
+    broken = copy / "train-000001.tar"
+    broken.chmod(0o644)
+    break_shard(broken)
+    return copy, broken
+
+
+def truncate(shard) -> None:
+    shard.write_bytes(shard.read_bytes()[: shard.stat().st_size // 3])  # cut inside a member
+
+
+def garble_frames(shard) -> None:
+    """Replace the JPEGs of every clip of the shard by zeros, keeping each frames member's table of lengths."""
+    with tarfile.open(shard) as tar:
+        members = [tar.extractfile(member).read() for member in tar]  # per clip: <id>.jpgs, then <id>.json
+    with open(shard, "wb") as file, open_writer(file) as tar:
+        for frames, metadata in zip(members[0::2], members[1::2]):
+            table = 4 * (int.from_bytes(frames[:4], "little") + 1)
+            add_clip(tar, json.loads(metadata), frames[:table] + bytes(len(frames) - table), "jpgs")
+
+
+@pytest.mark.parametrize("workers", [2, 0])
+def test_an_unreadable_shard_is_named_with_the_worker(built_shards, tmp_path, workers):
+    shards, broken = copy_with_broken_shard(built_shards, tmp_path, truncate)
+    dataset = SequenceDataset(shard_set(shards, "train"), batch_size=2, seq_len=8, num_workers=workers)
+    with pytest.raises(LoaderError) as failure:
+        list(make_dataloader(dataset))
+    message = str(failure.value)
+    who = r"DataLoader worker [01] \(pid \d+\)" if workers else "the loader"
+    assert failure.match(rf"^{who}, reading shard {broken}: ValueError: {broken} is not a readable shard .*--verify")
+    assert "Traceback" not in message
+
+
+def test_frames_that_do_not_decode_name_the_clip_and_its_shard(built_shards, tmp_path):
+    shards, broken = copy_with_broken_shard(built_shards, tmp_path, garble_frames)
+    dataset = SequenceDataset(shard_set(shards, "train"), batch_size=2, seq_len=8, num_workers=2)
+    loader = make_dataloader(dataset)
+    with pytest.raises(LoaderError, match=rf"DataLoader worker [01] \(pid \d+\), reading shard .*: clip \S+ of shard "
+                                          rf"{broken}: its frames do not decode \(ValueError: .*--verify"):
+        for epoch in range(3):  # an epoch may leave out the shard's clips
+            dataset.set_epoch(epoch)
+            list(loader)
+
+
+def test_a_worker_that_stalls_is_reported_after_the_timeout(built_shards):
+    slow = shard_set(built_shards, "train", shard_url=f"pipe:sleep 4; cat {built_shards}/{{name}}")
+    dataset = SequenceDataset(slow, batch_size=2, seq_len=8, num_workers=2)
+    with pytest.raises(LoaderError, match=r"no batch came from the DataLoader workers for 1 s \(worker 0 reading "
+                                          r"shard pipe:sleep 4; .*--data.timeout.*--ckpt_path"):
+        next(iter(make_dataloader(dataset, timeout=1)))
+
+
+def test_a_worker_killed_between_epochs_is_named_when_the_next_epoch_starts(built_shards):
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=2)
+    loader = make_dataloader(dataset)
+    before = {process.pid for process in multiprocessing.active_children()}
+    list(loader)
+    victim = min({process.pid for process in multiprocessing.active_children()} - before)
+    os.kill(victim, signal.SIGKILL)
+    dataset.set_epoch(1)
+    with pytest.raises(LoaderError, match=rf"^DataLoader worker [01] \(pid {victim}\) died while reading shard "):
+        list(loader)
+
+
+def test_a_worker_killed_while_the_trainer_waits_for_it_is_named_at_once(built_shards):
+    """Not after the loader's 600 s timeout: the death itself interrupts the wait."""
+    slow = shard_set(built_shards, "train", shard_url=f"pipe:sleep 3; cat {built_shards}/{{name}}")
+    dataset = SequenceDataset(slow, batch_size=2, seq_len=8, num_workers=2)
+    before = {process.pid for process in multiprocessing.active_children()}
+    batches = iter(make_dataloader(dataset))
+    victim = min({process.pid for process in multiprocessing.active_children()} - before)
+    threading.Timer(0.5, os.kill, (victim, signal.SIGKILL)).start()
+    started = time.monotonic()
+    with pytest.raises(LoaderError, match=rf"^DataLoader worker [01] \(pid {victim}\) died .*killed by SIGKILL"):
+        next(batches)
+    assert time.monotonic() - started < 60
+
+
+class KillWorker(lightning.Callback):
+    """Kills one of the fit's loader workers with `signum` after training step `step`."""
+
+    def __init__(self, step: int, signum: int):
+        self.step, self.signum, self.pid = step, signum, None
+
+    def on_fit_start(self, trainer, pl_module):
+        self.before = {process.pid for process in multiprocessing.active_children()}  # left by earlier tests
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step == self.step and self.pid is None:
+            self.pid = min({process.pid for process in multiprocessing.active_children()} - self.before)
+            os.kill(self.pid, self.signum)
+
+
+@pytest.mark.parametrize("signum, cause", [(signal.SIGKILL, "SIGKILL, most likely by the kernel's out-of-memory"),
+                                           (signal.SIGBUS, "SIGBUS: the shared memory .* \\(/dev/shm\\) is full")])
+def test_a_killed_worker_stops_the_fit_with_its_shard_and_cause_and_the_checkpoint_loads(
+        built_shards, tmp_path, signum, cause):
+    data = ShardDataModule(str(built_shards), batch_size=2, seq_len=8, num_workers=2, seed=1)
+    kill = KillWorker(step=3, signum=signum)
+    checkpoint = lightning.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path, save_last=True, every_n_train_steps=2)
+    trainer = lightning.Trainer(max_steps=200, accelerator="cpu", devices=1, logger=False, enable_progress_bar=False,
+                                callbacks=[SetEpoch(), kill, checkpoint], limit_val_batches=0,
+                                num_sanity_val_steps=0, enable_model_summary=False)
+    with pytest.raises(LoaderError) as failure:
+        trainer.fit(RecordingModel(), datamodule=data)
+    urls = "|".join(shard_set(built_shards, "train").urls)
+    assert failure.match(rf"^DataLoader worker [01] \(pid {kill.pid}\) died while reading shard ({urls}): killed by "
+                         rf"{cause}.*resume with `--ckpt_path")
+    assert "Traceback" not in str(failure.value)
+    saved = torch.load(tmp_path / "last.ckpt", weights_only=False)
+    assert saved["global_step"] >= 2 and saved["global_step"] % 2 == 0
+    assert trainer.global_step < 200
+
+
+def test_the_cli_prints_a_worker_failure_without_a_traceback(built_shards, tmp_path, capsys):
+    from model.cli import main
+
+    shards, broken = copy_with_broken_shard(built_shards, tmp_path, truncate)
+    status = main(["fit", "--config", str(TINY_CONFIG), "--data.shards", str(shards), "--data.batch_size", "2",
+                   "--data.seq_len", "8", "--data.num_workers", "2", "--trainer.max_steps", "4",
+                   "--trainer.limit_val_batches", "0", "--trainer.enable_progress_bar", "false",
+                   "--trainer.enable_model_summary", "false", "--trainer.default_root_dir", str(tmp_path / "run")])
+    error = capsys.readouterr().err
+    assert status == 2
+    assert "hauwm pretrain fit: error: DataLoader worker" in error and f"reading shard {broken}" in error
+    assert "Traceback" not in error
