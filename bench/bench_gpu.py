@@ -45,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from data_pipeline.loader import MANIFEST_FILE, SequenceDataset, shard_set  # noqa: E402
 from model.cli import lightning_cli  # noqa: E402
+from model.config import WorldModelConfig  # noqa: E402
 from model.module import PretrainModule, compiled, step_unless  # noqa: E402
 
 CONFIGS = ROOT / "configs" / "pretrain"
@@ -236,7 +237,9 @@ def main() -> None:
     gpu = device.type == "cuda"
     config = CONFIGS / ("ssv2.yaml" if gpu else "tiny.yaml")
     loaded = yaml.safe_load(config.read_text())
-    settings = {"model": {**loaded["model"], "k_max": loaded["data"]["k_max"]},
+    model = {**loaded["model"], "k_max": loaded["data"]["k_max"]}
+    model["world_model"] = WorldModelConfig(**model["world_model"])  # the sizes the config leaves out: defaults
+    settings = {"model": model,
                 "precision": args.precision or loaded["trainer"]["precision"]}
     batch_size, k_max = loaded["data"]["batch_size"], loaded["data"]["k_max"]
     lengths = args.lengths or ([16, 50] if gpu else [12])
@@ -247,8 +250,9 @@ def main() -> None:
     fit_length = loaded["data"]["seq_len"]
 
     print(f"machine: {machine(device)}")
-    print(f"settings: {config.relative_to(ROOT)} (M {settings['model']['ensemble']}, deter "
-          f"{settings['model']['deter']}, stoch {settings['model']['stoch']}, batch {batch_size}, K_max {k_max}), "
+    sizes = model["world_model"]
+    print(f"settings: {config.relative_to(ROOT)} (M {sizes.ensemble}, deter {sizes.deter}, stoch {sizes.stoch}, "
+          f"batch {batch_size}, K_max {k_max}), "
           f"{settings['precision']}, compiled = model.compile {compile_mode}; bare: L {lengths}, "
           f"{WARM_UP} warm-up + {steps} timed steps; fit: L {fit_length}, model.compile "
           f"{loaded['model'].get('compile', 'off')}, {workers} workers, log every "

@@ -16,12 +16,12 @@ Two optimizers, manual optimisation: the world model's Adam steps through Lightn
 DDP gradient averaging); λ's gradient is computed in closed form in float32 from the all-reduced constraint,
 so every rank holds the same λ, and stepped on the raw Adam (it never touches the grad scaler or the step count).
 
-The step never waits for the GPU: a step whose gradient norm is not finite is skipped on the device — both
-Adams are fused and take a `found_inf` flag (as GradScaler hands it to them), so neither the weights, nor log λ,
-nor any Adam moment or step count moves — and counted in two device counters: train/scaler_skips (16-mixed:
-GradScaler's overflow at its current scale with a finite loss, by design while it calibrates) and
-train/nonfinite_steps (a non-finite loss, or non-finite gradients without a scaler). The posterior noise is
-drawn outside the model, from one re-seeded generator, and `compile` compiles observe + losses.
+The training step has no host synchronisation of its own. A step whose gradient norm is not finite is skipped
+on the device — both Adams are fused and take a `found_inf` flag (as GradScaler hands it to them), so neither
+the weights, nor log λ, nor any Adam moment or step count moves — and counted in two device counters:
+train/scaler_skips (16-mixed: GradScaler's overflow at its current scale with a finite loss, by design while it
+calibrates) and train/nonfinite_steps (a non-finite loss, or non-finite gradients without a scaler). The
+posterior noise is drawn outside the model from one re-seeded generator; `compile` compiles observe + losses.
 """
 
 from __future__ import annotations
