@@ -34,9 +34,15 @@ def model_label(model: FrozenWorldModel, name: str) -> str:
     return f"{name} ({hcu}, M={model.config.ensemble}, step {provenance.get('global_step', '?')})"
 
 
+def seeded_noise(model: FrozenWorldModel, gaps: torch.Tensor, seed: int) -> torch.Tensor:
+    """The posterior noise [B, L, S] for sequences with these gaps [B, L], the same for the same seed."""
+    return model.rssm.draw_noise(*gaps.shape, generator=torch.Generator().manual_seed(seed))
+
+
 @torch.no_grad()
 def horizon_figure_data(model: FrozenWorldModel, batches: list[dict], k_max: int, seed: int) -> dict:
-    sums = sum(horizon_sums(model, batch, k_max, torch.Generator().manual_seed(seed + i))[0] for i, batch in enumerate(batches))
+    sums = sum(horizon_sums(model, batch, k_max, seeded_noise(model, batch["gaps"], seed + i))[0]
+               for i, batch in enumerate(batches))
     return horizon_metrics(sums)
 
 
@@ -44,7 +50,7 @@ def horizon_figure_data(model: FrozenWorldModel, batches: list[dict], k_max: int
 def rollout(model: FrozenWorldModel, batch: dict, heads: int, context: int, seed: int) -> dict:
     """Observe `context` frames of the first clip, then imagine the rest open-loop with the clip's own gaps."""
     frames, gaps, num_frames = batch["frames"][:1], batch["gaps"][:1], batch["num_frames"][:1]
-    obs = model.observe(frames[:, :context], gaps[:, :context], num_frames, torch.Generator().manual_seed(seed))
+    obs = model.observe(frames[:, :context], gaps[:, :context], num_frames, seeded_noise(model, gaps[:, :context], seed))
     conds = model.conditions(gaps[:, context:], num_frames)  # [1, H, C]
     start = obs.state(context - 1)
     mean_states, mean_heads = model.rssm.imagine(start, conds)  # heads' means along the ensemble-mean path

@@ -69,20 +69,25 @@ def lightning_cli(args: list[str]):
 
         def _parse_ckpt_path(self) -> None:
             """LightningCLI replaces the model settings with the checkpoint's when resuming; refuse a checkpoint
-            whose model size differs from the one asked for instead of silently training another size."""
-            config = self.config.get(self.config.get("subcommand") or "", {})
+            whose model size differs from the one asked for instead of silently training another size, and keep
+            this run's model.compile (how the step runs on this machine, not what it trains)."""
+            subcommand = self.config.get("subcommand") or ""
+            config = self.config.get(subcommand, {})
             ckpt_path = config.get("ckpt_path") if config else None
-            if ckpt_path and Path(ckpt_path).is_file():
-                saved = torch.load(ckpt_path, weights_only=True, map_location="cpu").get("hyper_parameters", {})
-                asked = WorldModelConfig(**config["model"]["world_model"].as_dict())
-                refuse_other_size(saved, asked, str(ckpt_path))
-                if saved and "world_model" not in saved:
-                    raise ConfigError(
-                        f"{ckpt_path} keeps the model sizes flat in its hyper_parameters (written before they moved "
-                        "under model.world_model), so this version cannot resume it; `hauwm pretrain export` still "
-                        "exports it, or resume it with the hauwm version that wrote it"
-                    )
+            if not (ckpt_path and Path(ckpt_path).is_file()):
+                return super()._parse_ckpt_path()
+            saved = torch.load(ckpt_path, weights_only=True, map_location="cpu").get("hyper_parameters", {})
+            asked = WorldModelConfig(**config["model"]["world_model"].as_dict())
+            refuse_other_size(saved, asked, str(ckpt_path))
+            if saved and "world_model" not in saved:
+                raise ConfigError(
+                    f"{ckpt_path} keeps the model sizes flat in its hyper_parameters (written before they moved "
+                    "under model.world_model), so this version cannot resume it; `hauwm pretrain export` still "
+                    "exports it, or resume it with the hauwm version that wrote it"
+                )
+            compile_mode = config["model"]["compile"]
             super()._parse_ckpt_path()
+            self.config[subcommand]["model"]["compile"] = compile_mode
 
         def before_instantiate_classes(self) -> None:
             config = self.config[self.subcommand]

@@ -23,10 +23,11 @@ COUNT, SQUARED_ERROR, DISAGREEMENT = range(3)
 
 
 def horizon_sums(
-    model: WorldModel, batch: dict, k_max: int, generator: torch.Generator | None = None
+    model: WorldModel, batch: dict, k_max: int, noise: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, Observation]:
-    """Sums over one batch, float64 [3, k_max]: frame counts, open-loop per-pixel MSE, disagreement; and the filtering."""
-    obs = model.observe(batch["frames"], batch["gaps"], batch["num_frames"], generator)
+    """Sums over one batch, float64 [3, k_max]: frame counts, open-loop per-pixel MSE, disagreement; and the filtering
+    (posterior noise [B, L, S] from `model.rssm.draw_noise`, fresh draws when None)."""
+    obs = model.observe(batch["frames"], batch["gaps"], batch["num_frames"], noise)
     ensemble_mean = obs.prior_mean[:, :, 1:].mean(0)  # [B, L-1, S]
     predicted = model.decode(RSSMState(obs.deter[:, 1:], ensemble_mean))  # [B, L-1, 3, 64, 64]
     mse = ((predicted.float() - preprocess(batch["frames"][:, 1:])) ** 2).mean((-3, -2, -1))  # [B, L-1]

@@ -15,17 +15,25 @@ and shrinks once it is not, so disagreement cannot grow without bound. λ₀ = 0
 Two optimizers, manual optimisation: the world model's Adam steps through Lightning (16-bit grad scaling,
 DDP gradient averaging); λ's gradient is computed in closed form in float32 from the all-reduced constraint,
 so every rank holds the same λ, and stepped on the raw Adam (it never touches the grad scaler or the step count).
-Steps whose gradients are not finite are skipped and counted (train/skipped_steps).
+
+The training step has no host synchronisation of its own. A step whose gradient norm is not finite is skipped
+on the device — both Adams are fused and take a `found_inf` flag (as GradScaler hands it to them), so neither
+the weights, nor log λ, nor any Adam moment or step count moves — and counted in two device counters:
+train/scaler_skips (16-mixed: GradScaler's overflow at its current scale with a finite loss, by design while it
+calibrates) and train/nonfinite_steps (a non-finite loss, or non-finite gradients without a scaler). The
+posterior noise is drawn outside the model from one re-seeded generator; `compile` compiles observe + losses.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
 
 import lightning as L
 import torch
+import torch.distributed as dist
+from lightning.pytorch.utilities import rank_zero_info
 from torch import nn
 
 from model.config import ConfigError, WorldModelConfig, saved_settings
@@ -68,6 +76,51 @@ def refuse_other_size(saved: Mapping[str, Any], asked: WorldModelConfig, source:
         )
 
 
+def upgrade_checkpoint(checkpoint: dict) -> None:
+    """Let a checkpoint written before the fused, synchronisation-free step resume: its one skipped-step counter
+    (cause unknown) becomes nonfinite_steps, and its Adam states load into the fused Adams."""
+    state = checkpoint.get("state_dict", {})
+    if "skipped_steps" in state:
+        state["nonfinite_steps"] = state.pop("skipped_steps")
+        state["scaler_skips"] = torch.zeros_like(state["nonfinite_steps"])
+    for optimizer in checkpoint.get("optimizer_states", []):
+        for group in optimizer["param_groups"]:
+            group["fused"] = True
+
+
+CompileMode = Literal["off", "default", "reduce-overhead"]
+
+
+def compiled(function: Callable, mode: CompileMode, device: torch.device) -> Callable:
+    """`function` as torch.compile builds it for `mode` on `device` (itself for "off"); static shapes (dynamic=False).
+
+    "reduce-overhead" (inductor + CUDA graphs) needs a GPU: elsewhere it falls back to inductor's default mode.
+    """
+    if mode == "off":
+        return function
+    if mode == "reduce-overhead" and device.type != "cuda":
+        rank_zero_info(f"model.compile reduce-overhead needs CUDA graphs (a GPU); compiling with mode default on {device}")
+        mode = "default"
+    return torch.compile(function, mode=mode, dynamic=False)
+
+
+def mean_over_ranks(value: torch.Tensor) -> torch.Tensor:
+    """The mean of a tensor over the DDP ranks (itself with one process); an all-reduce without Lightning's barrier."""
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return value
+    total = value.clone()
+    dist.all_reduce(total)
+    return total / dist.get_world_size()
+
+
+def step_unless(optimizer: torch.optim.Optimizer, skip: torch.Tensor) -> None:
+    """Step a fused Adam unless the device flag `skip` is set: the kernel then leaves weights, moments and the
+    step count as they were, with no host synchronisation (the `found_inf` contract GradScaler uses)."""
+    optimizer.found_inf = skip.float()
+    optimizer.step()
+    del optimizer.found_inf
+
+
 class PretrainModule(L.LightningModule):
     def __init__(
         self,
@@ -83,6 +136,8 @@ class PretrainModule(L.LightningModule):
         kl_scale: float = 1.0,
         grad_clip: float = 100.0,
         noise_seed: int = 0,
+        # engineering: how the step runs, not what it computes
+        compile: CompileMode = "off",
     ):
         super().__init__()
         if isinstance(world_model, Mapping):  # load_from_checkpoint of a module built without the CLI passes the dict
@@ -95,9 +150,12 @@ class PretrainModule(L.LightningModule):
         start = math.log(lambda_init) if lambda_init > 0 else 0.0
         # not trained by backprop: its gradient is set in closed form (dual_step), so DDP leaves it alone
         self.log_lambda = nn.Parameter(torch.tensor(start), requires_grad=False)
-        self.register_buffer("skipped_steps", torch.zeros((), dtype=torch.long))
+        self.register_buffer("scaler_skips", torch.zeros((), dtype=torch.long))
+        self.register_buffer("nonfinite_steps", torch.zeros((), dtype=torch.long))
+        self.step_losses: Callable[..., dict[str, torch.Tensor]] = self.training_losses  # compiled in on_fit_start
+        self._noise_generator: torch.Generator | None = None
         self._val_sums: torch.Tensor | None = None
-        self._step_finite = True  # set each step by on_before_optimizer_step, with the gradient norm
+        self._skip = torch.zeros((), dtype=torch.bool)  # set each step by on_before_optimizer_step
         self._grad_norm = torch.zeros(())
 
     @property
@@ -109,20 +167,30 @@ class PretrainModule(L.LightningModule):
         return self.log_lambda.exp() if self.hcu_enabled else torch.zeros((), device=self.log_lambda.device)
 
     def configure_optimizers(self):
-        world_model = torch.optim.Adam(self.world_model.parameters(), lr=self.hparams.lr)
-        dual = torch.optim.Adam([self.log_lambda], lr=self.hparams.lambda_lr)
+        # fused: each takes a device-side found_inf flag and skips its update on the device (step_unless)
+        world_model = torch.optim.Adam(self.world_model.parameters(), lr=self.hparams.lr, fused=True)
+        dual = torch.optim.Adam([self.log_lambda], lr=self.hparams.lambda_lr, fused=True)
         return [world_model, dual]
 
-    def noise(self, step: int, stream: int) -> torch.Generator:
-        """The posterior-sampling noise of one step, a function of (seed, stream, step, rank): resume is exact."""
-        generator = torch.Generator(device=self.device)
-        generator.manual_seed(hash((self.hparams.noise_seed, stream, step, self.global_rank)) % 2**63)
-        return generator
+    def noise(self, gaps: torch.Tensor, step: int, stream: int) -> torch.Tensor:
+        """The posterior-sampling noise [B, L, S] of one step (gaps [B, L]), a function of (seed, stream, step,
+        rank): resume is exact. One generator, re-seeded each step (host-side: no synchronisation)."""
+        if self._noise_generator is None or self._noise_generator.device != self.device:
+            self._noise_generator = torch.Generator(device=self.device)
+        self._noise_generator.manual_seed(hash((self.hparams.noise_seed, stream, step, self.global_rank)) % 2**63)
+        return self.world_model.rssm.draw_noise(*gaps.shape, generator=self._noise_generator, device=self.device)
+
+    def training_losses(
+        self, frames: torch.Tensor, gaps: torch.Tensor, num_frames: torch.Tensor, noise: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """Filtering and every loss term of one training batch: the part of the step that `compile` compiles."""
+        obs = self.world_model.observe(frames, gaps, num_frames, noise)
+        return self.compute_losses({"frames": frames, "gaps": gaps}, obs)
 
     def compute_losses(self, batch: dict, obs: Observation) -> dict[str, torch.Tensor]:
         """Every loss term of eq. 2–4 from a filtered batch; distribution terms and λ in float32."""
         images = self.world_model.decode(RSSMState(obs.deter, obs.stoch))  # [B, L, 3, 64, 64]
-        with torch.autocast(self.device.type, enabled=False):
+        with torch.autocast(obs.deter.device.type, enabled=False):
             recon_nll = reconstruction_nll(images.float(), preprocess(batch["frames"])).mean()
             kl_balanced, kl = balanced_kl(
                 obs.post_mean, obs.post_std, obs.prior_mean, obs.prior_std, self.hparams.kl_balance
@@ -144,54 +212,70 @@ class PretrainModule(L.LightningModule):
                 "lambda": weight,
             }
 
-    def dual_step(self, optimizer: torch.optim.Optimizer, k_disagreement: torch.Tensor) -> None:
-        """One dual-ascent step on log λ: d/dlogλ [λ · (E[k·dis] − target)] = λ · (E[k·dis] − target)."""
-        with torch.autocast(self.device.type, enabled=False):
+    def dual_step(self, optimizer: torch.optim.Optimizer, k_disagreement: torch.Tensor, skip: torch.Tensor) -> None:
+        """One dual-ascent step on log λ: d/dlogλ [λ · (E[k·dis] − target)] = λ · (E[k·dis] − target).
+
+        Skipped on the device when `skip` (the world model's step was skipped) or the constraint is not finite.
+        """
+        with torch.autocast(self.log_lambda.device.type, enabled=False):
             excess = k_disagreement.float() - self.hparams.hcu_target
             self.log_lambda.grad = (self.log_lambda.exp() * excess).detach().reshape_as(self.log_lambda)
-        optimizer.step()
+        step_unless(optimizer, skip | ~torch.isfinite(excess))
         optimizer.zero_grad(set_to_none=True)
+
+    def on_fit_start(self) -> None:
+        self.step_losses = compiled(self.training_losses, self.hparams.compile, self.device)
 
     def training_step(self, batch: dict, batch_idx: int) -> None:
         world_model_opt, dual_opt = self.optimizers()
-        obs = self.world_model.observe(
-            batch["frames"], batch["gaps"], batch["num_frames"], self.noise(self.global_step, stream=0)
-        )
-        terms = self.compute_losses(batch, obs)
+        log_now = self.trainer.log_every_n_steps > 0 and (self.global_step + 1) % self.trainer.log_every_n_steps == 0
+        noise = self.noise(batch["gaps"], self.global_step, stream=0)
+        if self.hparams.compile != "off":
+            torch.compiler.cudagraph_mark_step_begin()  # the last step's graph outputs are no longer read
+        terms = self.step_losses(batch["frames"], batch["gaps"], batch["num_frames"], noise)
         world_model_opt.zero_grad()
         self.manual_backward(terms["loss"])
-        world_model_opt.step()  # on_before_optimizer_step clips, or counts and skips a non-finite step
-        if self.hcu_enabled and self._step_finite:
-            constraint = self.trainer.strategy.reduce(terms["k_disagreement"], reduce_op="mean")
-            if torch.isfinite(constraint):
-                self.dual_step(dual_opt.optimizer, constraint)
-        logged = {f"train/{name}": value.detach() for name, value in terms.items()}
-        logged["train/log_lambda"] = self.log_lambda.detach()
-        logged["train/skipped_steps"] = self.skipped_steps.float()
-        logged["train/grad_norm"] = self._grad_norm
-        self.log_dict(logged, on_step=True, on_epoch=False, batch_size=batch["frames"].shape[0])
+        world_model_opt.step()  # on_before_optimizer_step unscales, clips, and flags a non-finite step (self._skip)
+        # skipped with a finite loss under 16-mixed: GradScaler's float16 overflow at its current scale
+        by_scaler = self._skip & torch.isfinite(terms["loss"]) & (self._grad_scaler() is not None)
+        self.scaler_skips += by_scaler
+        self.nonfinite_steps += self._skip & ~by_scaler
+        if self.hcu_enabled:
+            self.dual_step(dual_opt.optimizer, mean_over_ranks(terms["k_disagreement"]), self._skip)
+        if log_now:  # every trainer.log_every_n_steps: reading the values waits for the GPU
+            logged = {f"train/{name}": value.detach().clone() for name, value in terms.items()}
+            logged["train/log_lambda"] = self.log_lambda.detach().clone()
+            logged["train/grad_norm"] = self._grad_norm
+            logged["train/scaler_skips"] = self.scaler_skips.float()
+            logged["train/nonfinite_steps"] = self.nonfinite_steps.float()
+            self.log_dict(logged, on_step=True, on_epoch=False, batch_size=batch["frames"].shape[0])
+
+    def _grad_scaler(self) -> torch.amp.GradScaler | None:
+        """The 16-mixed grad scaler of the Trainer, None under other precisions."""
+        return getattr(self.trainer.precision_plugin, "scaler", None)
 
     def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
-        """Gradients are unscaled here (also under 16-mixed): clip them, or count and skip a non-finite step."""
-        norm = torch.nn.utils.clip_grad_norm_(self.world_model.parameters(), self.hparams.grad_clip)
+        """Unscale (16-mixed), clip, and flag on the device a step whose gradient norm is not finite (self._skip)."""
+        scaler = self._grad_scaler()
+        if scaler is not None:  # fused Adam would unscale inside its step, after the clipping: unscale here instead
+            scaler.unscale_(optimizer)
+        norm = torch.nn.utils.clip_grad_norm_(self.world_model.parameters(), self.hparams.grad_clip, foreach=True)
         self._grad_norm = norm.detach()
-        self._step_finite = bool(torch.isfinite(norm))  # identical on every rank: gradients are all-reduced
-        if not self._step_finite:
-            self.skipped_steps += 1
-            if getattr(self.trainer.precision_plugin, "scaler", None) is None:
-                optimizer.zero_grad(set_to_none=True)  # Adam leaves weights and moments as they are
-            # under 16-mixed the grad scaler skips the step itself and lowers its scale
+        self._skip = ~torch.isfinite(norm)  # identical on every rank: gradients are all-reduced
+        if scaler is None:  # read by the fused step right after this hook (a scaler hands it its own, equal flag)
+            optimizer.found_inf = self._skip.float()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         refuse_other_size(checkpoint.get("hyper_parameters", {}), self.world_model.config, "the checkpoint")
+        upgrade_checkpoint(checkpoint)
 
     # validation: open-loop one-jump prediction per gap k (model/evaluation.py)
 
     def on_validation_epoch_start(self) -> None:
         self._val_sums = torch.zeros(3, self.hparams.k_max, dtype=torch.float64, device=self.device)
 
-    def validation_step(self, batch: dict, batch_idx: int) -> None:
-        sums, obs = horizon_sums(self.world_model, batch, self.hparams.k_max, self.noise(batch_idx, stream=1))
+    def validation_step(self, batch: dict, batch_idx: int) -> None:  # eager: validation shapes may differ
+        sums, obs = horizon_sums(self.world_model, batch, self.hparams.k_max, self.noise(batch["gaps"], batch_idx, stream=1))
         self._val_sums += sums
         terms = self.compute_losses(batch, obs)
         keep = ("loss", "recon_nll", "kl", "hcu", "disagreement")

@@ -105,6 +105,12 @@ class EnsembleRSSM(nn.Module):
             torch.zeros(batch_size, self.stoch_dim, device=device),
         )
 
+    def draw_noise(
+        self, batch_size: int, length: int, generator: torch.Generator | None = None, device: torch.device | str | None = None
+    ) -> torch.Tensor:
+        """Standard-normal draws for the posterior samples of `observe`: [B, L, S] float32."""
+        return torch.randn(batch_size, length, self.stoch_dim, generator=generator, device=device)
+
     def feature(self, state: RSSMState) -> torch.Tensor:
         return torch.cat([state.deter, state.stoch.to(state.deter.dtype)], dim=-1)  # [..., deter + stoch]
 
@@ -124,14 +130,16 @@ class EnsembleRSSM(nn.Module):
         prev: RSSMState,
         cond: torch.Tensor,
         embed: torch.Tensor,
-        generator: torch.Generator | None = None,
+        noise: torch.Tensor | None = None,
     ) -> tuple[RSSMState, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Transition plus posterior: → (post state, post mean, post std [B, S], prior mean, prior std [M, B, S])."""
+        """Transition plus posterior: → (post state, post mean, post std [B, S], prior mean, prior std [M, B, S]).
+
+        noise [B, S]: the standard-normal draw of the posterior sample (fresh from the global RNG when None).
+        """
         deter, prior_mean, prior_std = self.img_step(prev, cond)
         raw = self.posterior(torch.cat([deter, embed.to(deter.dtype)], dim=-1))
         post_mean, post_std = _mean_std(raw, self.min_std, self.max_std)
-        noise = torch.randn(post_mean.shape, generator=generator, device=post_mean.device, dtype=post_mean.dtype)
-        stoch = post_mean + post_std * noise
+        stoch = post_mean + post_std * (torch.randn_like(post_mean) if noise is None else noise)
         return RSSMState(deter, stoch), post_mean, post_std, prior_mean, prior_std
 
     def observe(
@@ -139,14 +147,20 @@ class EnsembleRSSM(nn.Module):
         embeds: torch.Tensor,
         conds: torch.Tensor,
         state: RSSMState | None = None,
-        generator: torch.Generator | None = None,
+        noise: torch.Tensor | None = None,
     ) -> Observation:
-        """Filter a sequence: embeds [B, L, E], conds [B, L, C] (cond of the gap before each frame) → Observation."""
+        """Filter a sequence: embeds [B, L, E], conds [B, L, C] (cond of the gap before each frame) → Observation.
+
+        noise [B, L, S]: the standard-normal draws of the posterior samples (`draw_noise`; fresh from the global
+        RNG when None). Passing it in keeps the random draw out of a compiled region and makes it reproducible.
+        """
         if state is None:
             state = self.initial(embeds.shape[0], embeds.device)
+        if noise is None:
+            noise = self.draw_noise(*embeds.shape[:2], device=embeds.device)
         steps = []
         for t in range(embeds.shape[1]):
-            state, *dists = self.obs_step(state, conds[:, t], embeds[:, t], generator)
+            state, *dists = self.obs_step(state, conds[:, t], embeds[:, t], noise[:, t])
             steps.append((state.deter, state.stoch, *dists))
         deter, stoch, post_mean, post_std, prior_mean, prior_std = zip(*steps)
         return Observation(

@@ -34,10 +34,11 @@ class WorldModel(nn.Module):
         return self.temporal(gaps, num_frames.unsqueeze(-1))
 
     def observe(
-        self, frames: torch.Tensor, gaps: torch.Tensor, num_frames: torch.Tensor, generator: torch.Generator | None = None
+        self, frames: torch.Tensor, gaps: torch.Tensor, num_frames: torch.Tensor, noise: torch.Tensor | None = None
     ) -> Observation:
-        """Filter a batch of variable-gap sequences (docs/architecture.md section 2) into posterior states."""
-        return self.rssm.observe(self.embed(frames), self.conditions(gaps, num_frames), generator=generator)
+        """Filter a batch of variable-gap sequences (docs/architecture.md section 2) into posterior states;
+        noise [B, L, S] from `rssm.draw_noise` (fresh draws when None)."""
+        return self.rssm.observe(self.embed(frames), self.conditions(gaps, num_frames), noise=noise)
 
     def decode(self, state: RSSMState) -> torch.Tensor:
         """States with any leading dims → mean images [..., 3, 64, 64] in preprocess space ([-0.5, 0.5])."""

@@ -25,5 +25,5 @@ class RankReport(L.Callback):
         self.out_dir.mkdir(parents=True, exist_ok=True)
         report = {"rank": trainer.global_rank, "world_size": trainer.world_size, "global_step": trainer.global_step,
                   "batches": self.batches, "weights_sha256": digest.hexdigest(),
-                  "lambda": float(pl_module.hcu_weight()), "skipped": int(pl_module.skipped_steps)}
+                  "lambda": float(pl_module.hcu_weight()), "skipped": int(pl_module.scaler_skips + pl_module.nonfinite_steps)}
         (self.out_dir / f"rank{trainer.global_rank}.json").write_text(json.dumps(report))

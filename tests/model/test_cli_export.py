@@ -9,6 +9,7 @@ import shutil
 
 import pytest
 import torch
+import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from model.cli import main
@@ -32,9 +33,10 @@ def test_a_few_steps_of_tiny_lower_the_loss(tiny_run):
 
 
 def test_every_loss_term_and_lambda_is_logged_every_step(tiny_run):
-    for tag in ("recon_nll", "kl", "kl_balanced", "hcu", "disagreement", "lambda", "log_lambda", "skipped_steps"):
+    for tag in ("recon_nll", "kl", "kl_balanced", "hcu", "disagreement", "lambda", "log_lambda", "grad_norm",
+                "scaler_skips", "nonfinite_steps"):
         assert len(scalars(tiny_run, f"train/{tag}")) == RUN_STEPS, tag
-    assert scalars(tiny_run, "train/skipped_steps")[-1] == 0
+    assert scalars(tiny_run, "train/scaler_skips")[-1] == scalars(tiny_run, "train/nonfinite_steps")[-1] == 0
     for k in range(1, 6):  # validation per gap k
         assert scalars(tiny_run, f"val/disagreement_k{k}")
     assert scalars(tiny_run, "val/spearman_k_disagreement")
@@ -52,8 +54,8 @@ def test_export_reproduces_the_trained_module(tiny_run, tiny_export, fake_batch)
     with torch.no_grad():
         outputs = []
         for world_model in (module.world_model, frozen):
-            obs = world_model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"],
-                                      torch.Generator().manual_seed(3))
+            noise = world_model.rssm.draw_noise(*fake_batch["gaps"].shape, generator=torch.Generator().manual_seed(3))
+            obs = world_model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"], noise)
             outputs.append((obs.prior_mean, obs.post_mean, world_model.decode(RSSMState(obs.deter, obs.stoch))))
     for trained, exported in zip(*outputs):
         assert torch.equal(trained, exported)
@@ -96,8 +98,9 @@ def test_a_version_1_export_still_loads(tiny_export, as_v1_export, tmp_path, fak
     assert frozen.export_config["schema_version"] == 1 and frozen.config == reference.config
     assert frozen.export_config["world_model"] == reference.export_config["world_model"]  # handed back as version 2
     with torch.no_grad():
-        means = [model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"],
-                               torch.Generator().manual_seed(3)).prior_mean for model in (frozen, reference)]
+        noise = reference.rssm.draw_noise(*fake_batch["gaps"].shape, generator=torch.Generator().manual_seed(3))
+        means = [model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"], noise).prior_mean
+                 for model in (frozen, reference)]
     assert torch.equal(*means)
     config = json.loads((old / "config.json").read_text())
     del config["temporal_dim"]
@@ -160,6 +163,17 @@ def test_a_checkpoint_of_another_model_size_is_refused(built_shards, tiny_run, t
     assert "different model size (deter: checkpoint 64 vs this run 48)" in capsys.readouterr().err
 
 
+def test_a_resume_keeps_this_runs_compile_setting(built_shards, tiny_run, tmp_path):
+    """The checkpoint's settings replace the command line's on resume, except model.compile (how the step runs)."""
+    checkpoint = tiny_run / "checkpoints" / "last.ckpt"
+    assert torch.load(checkpoint, weights_only=True)["hyper_parameters"]["compile"] == "off"
+    # max_steps already reached: the resumed fit ends at once, after writing its resolved config.yaml
+    assert fit(built_shards, tmp_path, "--model.compile", "default", "--model.lr", "0.5", "--ckpt_path", str(checkpoint),
+               "--trainer.max_steps", str(RUN_STEPS)) == 0
+    config = yaml.safe_load(next((tmp_path / "lightning_logs").glob("version_*/config.yaml")).read_text())
+    assert config["model"]["compile"] == "default" and config["model"]["lr"] == 1e-3
+
+
 def test_export_of_a_missing_checkpoint_is_refused(tmp_path, capsys):
     assert main(["export", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "out")]) == 2
     assert "none.ckpt not found" in capsys.readouterr().err
@@ -188,9 +202,9 @@ def test_16_mixed_asked_on_a_cpu_trains_in_bf16_mixed_with_float32_distributions
     assert "using bf16-mixed on CPU" in capsys.readouterr().err
     losses = scalars(root, "train/loss")
     assert len(losses) == 3 and all(torch.isfinite(torch.tensor(losses)))
-    assert scalars(root, "train/skipped_steps")[-1] == 0
+    assert scalars(root, "train/scaler_skips")[-1] == scalars(root, "train/nonfinite_steps")[-1] == 0
     module = PretrainModule.load_from_checkpoint(root / "checkpoints" / "last.ckpt", map_location="cpu")
     batch = make_batch()
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        obs = module.world_model.observe(batch["frames"], batch["gaps"], batch["num_frames"], torch.Generator())
+        obs = module.world_model.observe(batch["frames"], batch["gaps"], batch["num_frames"])
     assert obs.prior_mean.dtype == obs.prior_std.dtype == obs.post_std.dtype == torch.float32

@@ -48,6 +48,7 @@ def test_ssv2_holds_table_3(ssv2_config):
     assert model["world_model"] == dataclasses.asdict(WorldModelConfig())  # the defaults are Table 3's
     assert (model["world_model"]["deter"], model["world_model"]["stoch"]) == (200, 30)
     assert (trainer["precision"], trainer["strategy"], trainer["devices"]) == ("16-mixed", "ddp", -1)
+    assert (model["compile"], trainer["log_every_n_steps"]) == ("reduce-overhead", 50)
 
 
 @pytest.mark.parametrize(
@@ -62,6 +63,7 @@ def test_ssv2_holds_table_3(ssv2_config):
         ("ablations/kmax-2.yaml", {"data.k_max": 2}),
         ("ablations/kmax-10.yaml", {"data.k_max": 10}),
         ("ablations/apv.yaml", {"model.world_model.ensemble": 1, "model.lambda_init": 0.0, "data.k_max": 1}),
+        ("bf16.yaml", {"trainer.precision": "bf16-mixed"}),
     ],
 )
 def test_overlays_change_only_what_they_name(capsys, tmp_path, ssv2_config, overlay, expected):
@@ -77,6 +79,7 @@ def test_overlays_change_only_what_they_name(capsys, tmp_path, ssv2_config, over
 def test_tiny_runs_on_cpu(capsys, tmp_path):
     config = resolved(capsys, tmp_path, "tiny.yaml")
     assert config["trainer"]["accelerator"] == "cpu" and config["model"]["world_model"]["ensemble"] == 7
+    assert config["model"]["compile"] == "off" and config["trainer"]["log_every_n_steps"] == 1
 
 
 def test_every_setting_is_overridable(capsys, tmp_path):

@@ -79,7 +79,7 @@ def train(batches: list[dict], root: Path, sizes: WorldModelConfig, max_steps: i
     recorder = LossRecorder()
     checkpoint = ModelCheckpoint(dirpath=root, save_last=True, every_n_train_steps=4)
     trainer = L.Trainer(max_steps=max_steps, accelerator="cpu", logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, callbacks=[recorder, checkpoint])
+                        enable_model_summary=False, callbacks=[recorder, checkpoint], log_every_n_steps=1)
     trainer.fit(module, train_dataloaders=ResumableBatches(batches), ckpt_path=ckpt_path)
     return module, recorder.losses
 
@@ -95,3 +95,19 @@ def test_resuming_gives_the_same_next_losses_as_an_uninterrupted_run(tmp_path, s
     full_state, resumed_state = full_module.state_dict(), resumed_module.state_dict()
     assert all(torch.equal(full_state[name], resumed_state[name]) for name in full_state)  # weights, λ, counters
     assert full_module.hcu_weight() != 1.0
+
+
+def test_a_checkpoint_of_the_unfused_step_resumes(tmp_path, small_sizes, batch_factory):
+    """Checkpoints written before the synchronisation-free step (one skipped_steps counter, unfused Adams) resume."""
+    batches = [batch_factory(batch_size=2, length=3, seed=i) for i in range(3)]
+    _, full = train(batches, tmp_path / "full", small_sizes, max_steps=6)
+    train(batches, tmp_path / "first", small_sizes, max_steps=4)
+    checkpoint = torch.load(tmp_path / "first" / "last.ckpt", weights_only=False)
+    state = checkpoint["state_dict"]
+    state["skipped_steps"] = state.pop("nonfinite_steps") + state.pop("scaler_skips")
+    for optimizer in checkpoint["optimizer_states"]:
+        for group in optimizer["param_groups"]:
+            group["fused"] = None
+    torch.save(checkpoint, tmp_path / "old.ckpt")
+    _, resumed = train(batches, tmp_path / "resumed", small_sizes, max_steps=6, ckpt_path=str(tmp_path / "old.ckpt"))
+    assert [resumed[step] for step in (5, 6)] == [full[step] for step in (5, 6)]

@@ -10,8 +10,10 @@ import math
 import lightning as L
 import pytest
 import torch
+from lightning.pytorch.plugins import MixedPrecision
 from torch.utils.data import DataLoader
 
+from model.config import WorldModelConfig
 from model.module import ConfigError, PretrainModule
 
 
@@ -20,13 +22,26 @@ def test_lambda_grows_while_the_ensemble_is_too_certain_and_shrinks_once_it_is_n
     _, dual = module.configure_optimizers()
     values = [module.hcu_weight().item()]
     for _ in range(5):  # k-scaled disagreement 0.1 < target 1.0: λ must grow
-        module.dual_step(dual, torch.tensor(0.1))
+        module.dual_step(dual, torch.tensor(0.1), skip=torch.tensor(False))
         values.append(module.hcu_weight().item())
     assert all(b > a for a, b in zip(values, values[1:]))
     for _ in range(40):  # disagreement 5.0 > target: λ must shrink, and stays positive
-        module.dual_step(dual, torch.tensor(5.0))
+        module.dual_step(dual, torch.tensor(5.0), skip=torch.tensor(False))
         values.append(module.hcu_weight().item())
     assert values[-1] < values[5] and values[-1] < 1.0 and values[-1] > 0
+
+
+def test_a_skipped_or_non_finite_dual_step_changes_neither_lambda_nor_its_adam(small_sizes):
+    module = PretrainModule(small_sizes, lambda_lr=0.05)
+    _, dual = module.configure_optimizers()
+    module.dual_step(dual, torch.tensor(0.1), skip=torch.tensor(False))
+    before = (module.log_lambda.clone(), copy.deepcopy(dual.state_dict()["state"]))
+    for constraint, skip in [(float("nan"), False), (float("inf"), False), (0.1, True)]:
+        module.dual_step(dual, torch.tensor(constraint), skip=torch.tensor(skip))
+        assert torch.equal(module.log_lambda, before[0])
+        assert all(torch.equal(dual.state_dict()["state"][0][key], value) for key, value in before[1][0].items())
+    module.dual_step(dual, torch.tensor(0.1), skip=torch.tensor(False))
+    assert module.log_lambda > before[0] and dual.state_dict()["state"][0]["step"] == 2
 
 
 def test_lambda_starts_at_lambda_init(small_sizes):
@@ -107,23 +122,61 @@ class PoisonedStep(PretrainModule):
 
 
 class Snapshots(L.Callback):
+    """The module's state dict (weights, log λ) and both Adams' states (moments, step counts) at the start and
+    after every batch."""
+
     def __init__(self):
-        self.weights = []
+        self.states = []
+
+    def snapshot(self, trainer, pl_module) -> None:
+        self.states.append(copy.deepcopy({"weights": pl_module.state_dict(),
+                                          "optimizers": [o.state_dict()["state"] for o in trainer.optimizers]}))
+
+    def on_train_start(self, trainer, pl_module):
+        self.snapshot(trainer, pl_module)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        self.weights.append(copy.deepcopy(pl_module.world_model.state_dict()))
+        self.snapshot(trainer, pl_module)
+
+
+def unchanged(before: dict, after: dict) -> bool:
+    """Weights, log λ and Adam states equal between two snapshots (the skip counters aside)."""
+    weights = all(torch.equal(before["weights"][n], after["weights"][n]) for n in before["weights"]
+                  if n not in ("scaler_skips", "nonfinite_steps"))
+    moments = all(torch.equal(a[key], b[key]) for old, new in zip(before["optimizers"], after["optimizers"])
+                  for a, b in zip(old.values(), new.values()) for key in a)
+    return weights and moments
+
+
+def fit_poisoned(sizes: WorldModelConfig, batches: list[dict], precision: MixedPrecision | None) -> tuple[PoisonedStep, list[int]]:
+    """Train on `batches` with step PoisonedStep.poisoned_step poisoned → the module and the steps that changed nothing."""
+    torch.manual_seed(0)
+    module = PoisonedStep(sizes)
+    snapshots = Snapshots()
+    trainer = L.Trainer(max_steps=len(batches), accelerator="cpu", plugins=precision and [precision], logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                        callbacks=[snapshots])
+    trainer.fit(module, DataLoader(batches, batch_size=None))
+    assert trainer.global_step == len(batches)
+    states = snapshots.states
+    return module, [step for step in range(len(batches)) if unchanged(states[step], states[step + 1])]
 
 
 def test_non_finite_steps_are_skipped_and_counted(small_sizes, batch_factory):
-    torch.manual_seed(0)
-    module = PoisonedStep(small_sizes)
-    snapshots = Snapshots()
-    trainer = L.Trainer(max_steps=4, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False, callbacks=[snapshots])
-    batches = [batch_factory(seed=i) for i in range(4)]
-    trainer.fit(module, DataLoader(batches, batch_size=None))
-    assert trainer.global_step == 4 and module.skipped_steps.item() == 1
-    before, after = snapshots.weights[1], snapshots.weights[2]  # the poisoned step is the third
-    assert all(torch.equal(before[name], after[name]) for name in before)
+    module, skipped = fit_poisoned(small_sizes, [batch_factory(seed=i) for i in range(4)], None)
+    assert skipped == [PoisonedStep.poisoned_step]  # weights, log λ, Adam moments and step counts stay; training goes on
+    assert (module.nonfinite_steps.item(), module.scaler_skips.item()) == (1, 0)
     assert all(torch.isfinite(p).all() for p in module.parameters())
-    assert not all(torch.equal(snapshots.weights[2][n], snapshots.weights[3][n]) for n in before)  # training went on
+
+
+def test_grad_scaler_skips_are_told_from_non_finite_steps(small_sizes, batch_factory):
+    """16-mixed (float16 autocast with GradScaler; the plugin is given explicitly, since the Trainer would turn
+    16-mixed into bf16-mixed on a CPU): the scaler's first step overflows by design and counts as a scaler skip,
+    the poisoned step as non-finite. Both change nothing and halve the scale. (init_scale 256 instead of 65536:
+    float16 is slow on a CPU, and from 65536 this model takes 8 halvings to stop overflowing.)"""
+    scaler = torch.amp.GradScaler("cpu", init_scale=256.0)
+    batches = [batch_factory(batch_size=2, length=3, seed=i) for i in range(4)]
+    module, skipped = fit_poisoned(small_sizes, batches, MixedPrecision("16-mixed", "cpu", scaler))
+    assert skipped == [0, PoisonedStep.poisoned_step]
+    assert (module.scaler_skips.item(), module.nonfinite_steps.item()) == (1, 1)
+    assert scaler.get_scale() == 64.0

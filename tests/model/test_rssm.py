@@ -71,10 +71,11 @@ def test_world_model_observes_a_loader_batch(fake_batch, small_sizes):
     assert images.shape == (B, L, 3, 64, 64) and images.dtype == torch.float32
 
 
-def test_posterior_noise_follows_the_generator():
+def test_posterior_samples_follow_the_noise():
     rssm = small_rssm()
     embeds, conds = torch.randn(2, 4, 12), torch.randn(2, 4, 8)
-    a = rssm.observe(embeds, conds, generator=torch.Generator().manual_seed(1))
-    b = rssm.observe(embeds, conds, generator=torch.Generator().manual_seed(1))
-    c = rssm.observe(embeds, conds, generator=torch.Generator().manual_seed(2))
+    a, b, c = (rssm.observe(embeds, conds, noise=rssm.draw_noise(2, 4, torch.Generator().manual_seed(seed)))
+               for seed in (1, 1, 2))
     assert torch.equal(a.stoch, b.stoch) and not torch.equal(a.stoch, c.stoch)
+    zero = rssm.observe(embeds, conds, noise=torch.zeros(2, 4, rssm.stoch_dim))
+    assert torch.equal(zero.stoch, zero.post_mean)  # stoch = mean + std · noise

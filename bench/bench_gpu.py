@@ -1,0 +1,302 @@
+"""Pre-training speed on one GPU (issue 12): the bare training step eager vs compiled, and the real fit.
+
+    python bench/bench_gpu.py                     # a GPU: ssv2.yaml settings, L = 16 and 50; under 8 minutes
+    python bench/bench_gpu.py --device cpu        # tiny.yaml settings, few steps: the same code on a CPU
+        [--shards DIR] [--lengths 16 50] [--steps 40] [--workers 4] [--precision bf16-mixed]
+
+Bare step: PretrainModule's noise, observe + losses (`training_losses`, eager or through `model.compile`),
+backward (GradScaler under 16-mixed), unscale, clip, the fused Adam's step and λ's dual step — what
+`training_step` does, without Lightning — on batches read from the shards beforehand, in the config's
+precision. Per length: ms per step and steps/s (the mean of --steps steps after 3 warm-up steps), the wall
+time of the 3 warm-up steps (compiling, CUDA-graph recording), peak memory.
+
+Real fit: `hauwm pretrain fit` through model.cli's LightningCLI with configs/pretrain/ssv2.yaml (GPU) or
+tiny.yaml (CPU) on one device: its precision, model.compile and log_every_n_steps, --workers DataLoader
+workers; progress bar off (its output would interleave) and no validation. Steps/s over the steps after the
+warm-up (whole epochs for short epochs), on
+  (a) long epochs: the sample train shards linked 63 times (over 500 steps an epoch at batch 32, 4 workers);
+  (b) short epochs: the sample data's 258 train clips (8 steps an epoch at batch 32, 4 workers: the
+      DataLoader's workers start again every epoch);
+with the skipped steps by cause (GradScaler's overflows, non-finite steps). On the CPU also the issue's CPU
+target: the fit with 2 workers against the bare step loop on the same batches (aim ≥ 0.9×), and with 0 workers.
+Shards: built from `hauwm shards sample-data --clips 344` in a temporary directory, or --shards DIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import math
+import os
+import platform
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from data_pipeline.loader import MANIFEST_FILE, SequenceDataset, shard_set  # noqa: E402
+from model.cli import lightning_cli  # noqa: E402
+from model.config import WorldModelConfig  # noqa: E402
+from model.module import PretrainModule, compiled, step_unless  # noqa: E402
+
+CONFIGS = ROOT / "configs" / "pretrain"
+SAMPLE_CLIPS = 344  # 258 train clips (the sample data keeps 1/8 each for validation and test)
+LONG_EPOCH_COPIES = 63  # 63 × 258 train clips: 126 batches of 32 per worker, 504 steps an epoch with 4 workers
+WARM_UP = 3  # bare steps before the timing: compiling and CUDA-graph recording happen here
+FIT_WARM_UP = 20  # fit steps before the timing (rounded up to whole epochs for short epochs)
+
+
+class StepTimer(L.Callback):
+    """The wall-clock time at the start of training and at the end of every training batch; the device is
+    synchronised at the end of training, so the last time covers all queued work."""
+
+    def __init__(self):
+        self.start, self.times = 0.0, []
+
+    def on_train_start(self, trainer, pl_module):
+        self.start = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.times.append(time.perf_counter())
+
+    def on_train_end(self, trainer, pl_module):
+        synchronize(pl_module.device)
+        self.times[-1] = time.perf_counter()
+
+
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def peak_memory_gib(device: torch.device) -> float:
+    """Peak GPU memory allocated since the last reset; on a CPU the process's peak resident set so far."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**30
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def reset(device: torch.device) -> None:
+    """Forget compiled graphs and cached memory between settings, so each is measured on its own."""
+    torch._dynamo.reset()
+    gc.collect()
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats(device)
+
+
+def machine(device: torch.device) -> str:
+    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.processor())
+    accelerator = (f"{torch.cuda.get_device_name(device)}, CUDA {torch.version.cuda}" if device.type == "cuda"
+                   else "no GPU")
+    return (f"{accelerator}; {cpu}, {len(os.sched_getaffinity(0))} CPU cores; torch {torch.__version__}, "
+            f"lightning {L.__version__}, Python {platform.python_version()}; load average "
+            f"{os.getloadavg()[0]:.1f} at the start")
+
+
+def sample_shards(work: Path) -> Path:
+    """The built-in sample data and its shards (8 clips a shard, so 4 workers each get several)."""
+    from data_pipeline.cli import main as shards_main
+
+    shards = work / "shards"
+    workers = str(max(1, min(8, len(os.sched_getaffinity(0)) // 2)))
+    assert shards_main(["sample-data", "--out", str(work / "ssv2"), "--clips", str(SAMPLE_CLIPS),
+                        "--workers", workers]) == 0
+    assert shards_main(["build", "--annotations", str(work / "ssv2" / "annotations"), "--videos",
+                        str(work / "ssv2" / "videos"), "--out", str(shards), "--clips-per-shard", "8",
+                        "--workers", workers]) == 0
+    return shards
+
+
+def linked_copies(shards: Path, out: Path, copies: int) -> Path:
+    """A shard directory whose train split lists every train shard `copies` times (symbolic links, one
+    manifest): the same clips, an epoch `copies` times as long. The validation split is linked once."""
+    manifest = json.loads((shards / MANIFEST_FILE).read_text())
+    out.mkdir(parents=True, exist_ok=True)
+    for split, entry in manifest["splits"].items():
+        times = copies if split == "train" else 1
+        listed = []
+        for copy in range(times):
+            for shard in entry["shards"]:
+                name = f"copy{copy:03d}-{shard['name']}"
+                link = out / name
+                if not link.exists():
+                    link.symlink_to((shards / shard["name"]).resolve())
+                listed.append({**shard, "name": name})
+        entry["shards"] = listed
+        entry["clips"] = entry["clips"] * times
+    (out / MANIFEST_FILE).write_text(json.dumps(manifest))
+    return out
+
+
+def load_batches(shards: Path, batch_size: int, length: int, k_max: int, count: int, device: torch.device) -> list[dict]:
+    """`count` train batches read in the main process (cycled if the split holds fewer), on `device`."""
+    dataset = SequenceDataset(shard_set(shards, "train"), batch_size=batch_size, seq_len=length, k_max=k_max)
+    batches = []
+    while len(batches) < count:
+        for batch in dataset:
+            batches.append({key: value.to(device) for key, value in batch.items() if torch.is_tensor(value)})
+            if len(batches) == count:
+                break
+    return batches
+
+
+def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: int, device: torch.device) -> dict:
+    """Time the bare training step (module docstring) → ms, steps/s, warm-up seconds, peak memory."""
+    reset(device)
+    torch.manual_seed(0)
+    module = PretrainModule(**{**settings["model"], "compile": compile_mode}).to(device)
+    module.step_losses = compiled(module.training_losses, compile_mode, device)
+    world_model_opt, dual_opt = module.configure_optimizers()
+    precision = settings["precision"]
+    scaler = torch.amp.GradScaler(device.type, enabled=precision == "16-mixed")
+    dtype = {"16-mixed": torch.float16, "bf16-mixed": torch.bfloat16}.get(precision)
+
+    def step(index: int) -> None:
+        batch = batches[index % len(batches)]
+        noise = module.noise(batch["gaps"], index, stream=0)
+        if compile_mode != "off":
+            torch.compiler.cudagraph_mark_step_begin()
+        with torch.autocast(device.type, dtype=dtype, enabled=dtype is not None, cache_enabled=False):
+            terms = module.step_losses(batch["frames"], batch["gaps"], batch["num_frames"], noise)
+        world_model_opt.zero_grad(set_to_none=True)
+        scaler.scale(terms["loss"]).backward()
+        scaler.unscale_(world_model_opt)
+        norm = torch.nn.utils.clip_grad_norm_(module.world_model.parameters(), module.hparams.grad_clip, foreach=True)
+        skip = ~torch.isfinite(norm)
+        if scaler.is_enabled():
+            scaler.step(world_model_opt)
+            scaler.update()
+        else:
+            step_unless(world_model_opt, skip)
+        module.dual_step(dual_opt, terms["k_disagreement"], skip)
+
+    started = time.perf_counter()
+    for index in range(WARM_UP):
+        step(index)
+    synchronize(device)
+    warm_up = time.perf_counter() - started
+    started = time.perf_counter()
+    for index in range(WARM_UP, WARM_UP + steps):
+        step(index)
+    synchronize(device)
+    seconds = (time.perf_counter() - started) / steps
+    return {"ms": 1000 * seconds, "steps_per_s": 1 / seconds, "warm_up_s": warm_up,
+            "peak_gib": peak_memory_gib(device)}
+
+
+def whole_epochs(steps: int, per_epoch: int) -> int:
+    """At least `steps` steps, rounded up to whole epochs."""
+    return math.ceil(steps / per_epoch) * per_epoch
+
+
+def real_fit(config: Path, shards: Path, workers: int, max_steps: int, precision: str, root: Path,
+             device: torch.device) -> dict:
+    """`hauwm pretrain fit` (model.cli's LightningCLI) on one device → steps/s after the warm-up and more."""
+    reset(device)
+    args = ["fit", "--config", str(config), "--data.shards", str(shards), "--data.num_workers", str(workers),
+            "--trainer.precision", precision, "--trainer.max_steps", str(max_steps), "--trainer.devices", "1",
+            "--trainer.strategy", "auto", "--trainer.limit_val_batches", "0", "--trainer.enable_progress_bar",
+            "false", "--trainer.enable_model_summary", "false", "--trainer.default_root_dir", str(root),
+            "--trainer.callbacks+=bench_gpu.StepTimer"]
+    cli = lightning_cli(args)
+    timer = next(callback for callback in cli.trainer.callbacks if type(callback).__name__ == "StepTimer")
+    per_epoch = cli.trainer.num_training_batches
+    warm = min(FIT_WARM_UP, max_steps // 2) if per_epoch >= max_steps else whole_epochs(FIT_WARM_UP, per_epoch)
+    times = timer.times
+    return {"steps_per_s": (len(times) - warm) / (times[-1] - times[warm - 1]), "steps_per_epoch": per_epoch,
+            "timed_steps": len(times) - warm, "first_step_s": times[0] - timer.start,
+            "scaler_skips": int(cli.model.scaler_skips), "nonfinite_steps": int(cli.model.nonfinite_steps),
+            "peak_gib": peak_memory_gib(device)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", choices=["cuda", "cpu"], default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--shards", type=Path, default=None, help=f"default: build {SAMPLE_CLIPS} sample clips")
+    parser.add_argument("--lengths", type=int, nargs="+", default=None, help="bare-step L (GPU: 16 50; CPU: 12)")
+    parser.add_argument("--steps", type=int, default=None, help="timed bare steps (GPU: 40; CPU: 8)")
+    parser.add_argument("--fit-steps", type=int, default=None, help="fit steps, long epochs (GPU: 500; CPU: 40)")
+    parser.add_argument("--workers", type=int, default=None, help="fit DataLoader workers (GPU: 4; CPU: 2)")
+    parser.add_argument("--precision", default=None, help="default: the config's (16-mixed on GPU, 32-true on CPU)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    gpu = device.type == "cuda"
+    config = CONFIGS / ("ssv2.yaml" if gpu else "tiny.yaml")
+    loaded = yaml.safe_load(config.read_text())
+    model = {**loaded["model"], "k_max": loaded["data"]["k_max"]}
+    model["world_model"] = WorldModelConfig(**model["world_model"])  # the sizes the config leaves out: defaults
+    settings = {"model": model,
+                "precision": args.precision or loaded["trainer"]["precision"]}
+    batch_size, k_max = loaded["data"]["batch_size"], loaded["data"]["k_max"]
+    lengths = args.lengths or ([16, 50] if gpu else [12])
+    steps = args.steps or (40 if gpu else 8)
+    fit_steps = args.fit_steps or (500 if gpu else 40)
+    workers = args.workers if args.workers is not None else (4 if gpu else 2)
+    compile_mode = "reduce-overhead" if gpu else "default"
+    fit_length = loaded["data"]["seq_len"]
+
+    print(f"machine: {machine(device)}")
+    sizes = model["world_model"]
+    print(f"settings: {config.relative_to(ROOT)} (M {sizes.ensemble}, deter {sizes.deter}, stoch {sizes.stoch}, "
+          f"batch {batch_size}, K_max {k_max}), "
+          f"{settings['precision']}, compiled = model.compile {compile_mode}; bare: L {lengths}, "
+          f"{WARM_UP} warm-up + {steps} timed steps; fit: L {fit_length}, model.compile "
+          f"{loaded['model'].get('compile', 'off')}, {workers} workers, log every "
+          f"{loaded['trainer']['log_every_n_steps']} steps; {torch.get_num_threads()} torch threads", flush=True)
+    work = Path(tempfile.mkdtemp(prefix="bench-gpu-"))
+    started = time.perf_counter()
+    shards = args.shards or sample_shards(work)
+    print(f"shards: {shards} ({time.perf_counter() - started:.0f} s)", flush=True)
+
+    print(f"\n{'bare step':<24} {'L':>3} {'ms/step':>8} {'steps/s':>8} {'warm-up s':>10} {'peak GiB':>9}")
+    bare = {}
+    for length in lengths:
+        batches = load_batches(shards, batch_size, length, k_max, 4, device)
+        for mode in ("off", compile_mode):
+            result = bare[length, mode] = bare_steps(settings, batches, mode, steps, device)
+            label = "eager" if mode == "off" else f"compiled ({mode})"
+            print(f"{label:<24} {length:>3} {result['ms']:8.1f} {result['steps_per_s']:8.1f} "
+                  f"{result['warm_up_s']:10.1f} {result['peak_gib']:9.2f}", flush=True)
+
+    long_epochs = linked_copies(shards, work / "long-epochs", LONG_EPOCH_COPIES)
+    per_epoch = len(SequenceDataset(shard_set(shards, "train"), batch_size=batch_size, seq_len=fit_length,
+                                    k_max=k_max, num_workers=workers))  # short epochs: warm-up + about half as many
+    short_steps = whole_epochs(FIT_WARM_UP, per_epoch) + whole_epochs(fit_steps // 2, per_epoch)  # timed steps
+    runs = [("(a) long epochs", long_epochs, workers, fit_steps)]
+    if not gpu:
+        runs.append(("(a) long epochs", long_epochs, 0, fit_steps))
+    runs.append(("(b) short epochs", shards, workers, short_steps))
+    print(f"\n{'real fit':<18} {'workers':>7} {'steps/epoch':>11} {'timed steps':>11} {'steps/s':>8} "
+          f"{'1st step s':>10} {'scaler skips':>12} {'non-finite':>10} {'peak GiB':>9}")
+    fits = {}
+    for index, (label, directory, fit_workers, max_steps) in enumerate(runs):
+        result = fits[label, fit_workers] = real_fit(config, directory, fit_workers, max_steps,
+                                                     settings["precision"], work / f"fit-{index}", device)
+        print(f"{label:<18} {fit_workers:>7} {result['steps_per_epoch']:>11} {result['timed_steps']:>11} "
+              f"{result['steps_per_s']:8.2f} {result['first_step_s']:10.1f} {result['scaler_skips']:>12} "
+              f"{result['nonfinite_steps']:>10} {result['peak_gib']:9.2f}", flush=True)
+
+    reference = bare[fit_length, compile_mode if gpu else "off"] if fit_length in lengths else None
+    if reference is not None:
+        kind = "bare compiled step (aim ≥ 0.8×)" if gpu else "bare eager step loop on the same batches (aim ≥ 0.9×)"
+        for (label, fit_workers), result in fits.items():
+            print(f"{label}, {fit_workers} workers: {result['steps_per_s'] / reference['steps_per_s']:.2f}× the {kind}")
+    print(f"\nwall time {time.perf_counter() - started:.0f} s; load average {os.getloadavg()[0]:.1f} at the end")
+
+
+if __name__ == "__main__":
+    main()
