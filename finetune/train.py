@@ -51,19 +51,38 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | None, device: torch.device) -> Agent:
+def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | None, device: torch.device,
+                agent_class: type[Agent] = Agent) -> Agent:
+    """The agent (`agent_class`: Agent for online RL, or offline RL's and imitation's subclasses) on `device`."""
     from finetune.pretrained import k1_embedding, load_pretrained
 
     if cfg.agent == "scratch":
-        return Agent(cfg, action_dim).to(device)
+        return agent_class(cfg, action_dim).to(device)
     if pretrained is None:
         raise FinetuneError("agent 'hauwm' needs --pretrained DIR (an export of `hauwm pretrain export`); "
                             "or run the scratch baseline with --set agent=scratch")
     frozen = load_pretrained(pretrained)
     try:
-        return Agent(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
+        return agent_class(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
     except ValueError as error:  # sizes of the config that do not fit the export
         raise FinetuneError(f"--pretrained {pretrained}: {error}") from None
+
+
+def load_dataset(dataset_id: str | None, task: str, action_dim: int, flag: str) -> list[dict[str, np.ndarray]]:
+    """Episodes of a dataset (finetune.datasets, Minari) in the replay's format, for offline RL (--dataset) and
+    imitation (--demos); every problem is a FinetuneError naming `flag`."""
+    if not dataset_id:
+        raise FinetuneError(f"{flag} ID is needed: a dataset written by `hauwm datasets collect` (or set "
+                            f"{flag.lstrip('-')} in the config)")
+    from finetune.datasets import DatasetError, load_episodes
+
+    try:
+        episodes = load_episodes(dataset_id, task=task, action_dim=action_dim)
+    except DatasetError as error:
+        raise FinetuneError(f"{flag} {dataset_id}: {error}") from None
+    if not episodes:
+        raise FinetuneError(f"{flag} {dataset_id}: the dataset holds no episode")
+    return episodes
 
 
 def export_fingerprint(pretrained: str | Path | None) -> str:
@@ -77,22 +96,28 @@ def export_fingerprint(pretrained: str | Path | None) -> str:
     return digest.hexdigest()
 
 
-def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, int], fingerprint: str) -> None:
+def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, int], fingerprint: str,
+                    rng: np.random.Generator | None = None) -> None:
+    """`rng`: the replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
     state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
              "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state(),
              "export_sha256": fingerprint}
+    if rng is not None:
+        state["replay_rng"] = rng.bit_generator.state
     tmp = path.with_suffix(".tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str) -> dict[str, int]:
+def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
+                    rng: np.random.Generator | None = None) -> dict[str, int]:
     state = torch.load(path, map_location=agent.device, weights_only=True)
     if state["export_sha256"] != fingerprint:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the same export or use another --logdir")
-    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm"):
-        if state["config"].get(key) != getattr(cfg, key):  # .get: a checkpoint older than the setting
+    newer = {"paradigm": "online", "model_heads": 1, "dataset": None, "demos": None}  # what older checkpoints had
+    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm", *newer):
+        if state["config"].get(key, newer.get(key)) != getattr(cfg, key):  # .get: a checkpoint older than the setting
             raise FinetuneError(f"{path} was written by a run with {key}={state['config'].get(key)!r}, this run has "
                                 f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
     missing, unexpected = agent.load_state_dict(state["agent"], strict=False)
@@ -101,17 +126,20 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
         raise FinetuneError(f"{path} does not fit this agent (missing {missing[:3]}, unexpected {unexpected[:3]})")
     agent.load_optimizer_state_dicts(state["optimizers"])
     torch.set_rng_state(state["torch_rng"])
+    if rng is not None and "replay_rng" in state:
+        rng.bit_generator.state = state["replay_rng"]
     return dict(state["counters"])
 
 
-def evaluate(agent: Agent, env, episodes: int, task: str) -> dict[str, float]:
-    """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate."""
+def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None) -> dict[str, float]:
+    """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate.
+    `seed` reseeds the env first (the same episodes whenever this evaluation is run again, e.g. after resume)."""
     from finetune.envs.references import normalised_return
 
     policy = AgentPolicy(agent, explore=False)
     returns, successes = [], []
-    for _ in range(episodes):
-        episode = play_episode(env, policy)
+    for index in range(episodes):
+        episode = play_episode(env, policy, seed=seed if index == 0 else None)
         returns.append(float(episode["reward"].sum(dtype=np.float64)))
         successes.append(bool(episode.get("success", np.zeros(1)).any()))
     result = {"return": float(np.mean(returns)), "return_std": float(np.std(returns))}
