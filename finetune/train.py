@@ -16,7 +16,7 @@ import fcntl
 import hashlib
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -170,13 +170,25 @@ def exclusive(logdir: Path) -> Iterator[None]:
         yield
 
 
+@dataclasses.dataclass(frozen=True)
+class LoopHooks:
+    """What imitation changes in this loop (finetune/imitation.py); the defaults are online RL's."""
+
+    agent_class: type[Agent] = Agent
+    # (cfg, replay directory, sampling rng, action dim) -> the replay; None: the online replay of the agent's episodes
+    make_replay: Callable[[FinetuneConfig, Path, np.random.Generator, int], Replay] | None = None
+    # reseed each training episode and each evaluation from its index, so that a run resumed from a
+    # checkpoint taken at an episode's end continues exactly as an unbroken run
+    reseed: bool = False
+
+
 def train(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: bool = True) -> dict[str, float]:
     """Run (or resume) fine-tuning in cfg.logdir until cfg.steps env steps; returns the last evaluation."""
     with exclusive(Path(cfg.logdir)):
         return run(cfg, pretrained, progress)
 
 
-def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> dict[str, float]:
+def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hooks: LoopHooks = LoopHooks()) -> dict[str, float]:
     """The loop itself, in a run directory this process holds the lock of."""
     from finetune.envs import make_env
 
@@ -190,26 +202,40 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> d
         probe = make_env(cfg.task, seed=cfg.seed, **env_kwargs)
     except ValueError as error:  # an unknown task name
         raise FinetuneError(f"task {cfg.task!r}: {error}") from None
-    agent = build_agent(cfg, probe.action_space.shape[0], pretrained, device)
+    action_dim = probe.action_space.shape[0]
+    agent = build_agent(cfg, action_dim, pretrained, device, hooks.agent_class)
     fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
     counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
                 "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
+    rng = np.random.default_rng([cfg.seed, 0])  # the replay's sampler; a checkpoint restores its state
     checkpoint = logdir / CHECKPOINT
     if checkpoint.exists():
-        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint)
+        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng)
     (logdir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
 
-    # a resumed run reseeds from its progress, so it does not replay the same random streams
+    # a resumed run reseeds from its progress, so it does not replay the same random streams; with hooks.reseed
+    # each episode is seeded from its index instead, in the envs of a fresh run (Meta-World draws its 50 goal
+    # placements from the seed an env is made with)
+    resumed = counters["episodes"] > 0 and not hooks.reseed
     seed = cfg.seed + counters["episodes"]
-    rng = np.random.default_rng([cfg.seed, counters["env_step"]])
-    env = probe if counters["episodes"] == 0 else make_env(cfg.task, seed=seed, **env_kwargs)
+    env = make_env(cfg.task, seed=seed, **env_kwargs) if resumed else probe
     env.action_space.seed(seed)
-    eval_env = make_env(cfg.task, seed=cfg.seed + 10_000 + counters["env_step"], **env_kwargs)
-    replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
+    eval_env = make_env(cfg.task, seed=cfg.seed + 10_000 + (counters["env_step"] if resumed else 0), **env_kwargs)
+    if hooks.make_replay is None:
+        replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
+    else:
+        replay = hooks.make_replay(cfg, logdir / "replay", rng, action_dim)
     replay.load()
     logger = Logger(logdir)
 
-    obs, _ = env.reset()
+    def reset() -> np.ndarray:
+        if not hooks.reseed:
+            return env.reset()[0]
+        episode_seed = cfg.seed + counters["episodes"]
+        env.action_space.seed(episode_seed)
+        return env.reset(seed=episode_seed)[0]
+
+    obs = reset()
     latent, prev_action = agent.initial()
     episode = {"obs": [obs], "action": [np.zeros(env.action_space.shape, np.float32)], "reward": [0.0]}
     last_eval: dict[str, float] = {}
@@ -233,7 +259,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> d
             counters["episodes"] += 1
             logger.write("episodes", counters["env_step"], {"return": float(sum(episode["reward"])),
                                                            "length": len(episode["reward"]) - 1})
-            obs, _ = env.reset()
+            obs = reset()
             latent, prev_action = agent.initial()
             episode = {"obs": [obs], "action": [episode["action"][0]], "reward": [0.0]}
 
@@ -252,12 +278,13 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> d
             window = {"time": now, "updates": counters["updates"], "metrics": []}
             counters["next_log"] = next_multiple(counters["env_step"], cfg.log_every)
         if counters["env_step"] >= counters["next_eval"] or counters["env_step"] >= cfg.steps:
-            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task)
+            eval_seed = cfg.seed + 10_000 + counters["env_step"] if hooks.reseed else None
+            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=eval_seed)
             logger.write("eval", counters["env_step"], last_eval)
             bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
             counters["next_eval"] = next_multiple(counters["env_step"], cfg.eval_every)
         if counters["env_step"] >= counters["next_checkpoint"] or counters["env_step"] >= cfg.steps:
-            save_checkpoint(checkpoint, agent, cfg, counters, fingerprint)
+            save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
             counters["next_checkpoint"] = next_multiple(counters["env_step"], cfg.checkpoint_every)
     bar.close()
     logger.close()

@@ -48,9 +48,9 @@ def test_every_penalty_has_a_gradient_to_the_heads_means_except_max_std():
 
 
 def offline_config(tiny_config, logdir, steps, **extra):
-    values = dict(paradigm="offline", task="metaworld_drawer_close", dataset="test/two-episodes-v0", model_heads=3, horizon=3,
-                  time_limit=6, fast_render=True, steps=steps, eval_every=2, eval_episodes=1, log_every=1,
-                  checkpoint_every=2, logdir=str(logdir))
+    values = dict(paradigm="offline", task="metaworld_drawer_close", dataset="test/two-episodes-v0", action_repeat=1,
+                  model_heads=3, horizon=3, time_limit=6, fast_render=True, steps=steps, eval_every=2,
+                  eval_episodes=1, log_every=1, checkpoint_every=2, logdir=str(logdir))
     values.update(extra)
     return tiny_config(**values)
 
