@@ -65,7 +65,8 @@ def two_episodes(minari_dataset, random_episodes):
     return minari_dataset("test/two-episodes-v0", random_episodes(2, 12, 4), "metaworld_drawer_close")
 
 
-def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir, tiny_config, tmp_path, two_episodes):
+def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir, tiny_config, tmp_path, two_episodes,
+                                                                     minari_dataset, random_episodes):
     whole = train_offline(offline_config(tiny_config, tmp_path / "whole", 4), export_dir, progress=False)
     assert set(whole) >= {"return", "normalised_return", "success_rate"}
     train_offline(offline_config(tiny_config, tmp_path / "halves", 2), export_dir, progress=False)
@@ -84,6 +85,7 @@ def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir,
                 "frozen_disagreement_imagined", "imagined_model_reward"):
         assert np.isfinite(float(train[-1][key])), key
 
+    minari_dataset("test/other-v0", random_episodes(2, 12, 4, seed=5), "metaworld_drawer_close")
     with pytest.raises(FinetuneError, match="dataset='test/two-episodes-v0'"):  # a run directory of another dataset
         train_offline(offline_config(tiny_config, tmp_path / "whole", 6, dataset="test/other-v0"), export_dir,
                       progress=False)
