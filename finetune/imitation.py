@@ -63,7 +63,7 @@ def demos_per_batch(cfg: FinetuneConfig) -> int:
 
 def make_replay(cfg: FinetuneConfig, directory: Path, rng: np.random.Generator, action_dim: int) -> MixedReplay:
     demos = Replay(None, cfg.replay_capacity, rng)
-    for episode in load_dataset(cfg.demos, cfg.task, action_dim, "--demos"):
+    for episode in load_dataset(cfg.demos, cfg, action_dim, "--demos"):
         demos.add(episode)
     if not demos.ready(cfg.seq_len):
         raise FinetuneError(f"--demos {cfg.demos}: no demonstration holds seq_len = {cfg.seq_len} steps; lower seq_len")

@@ -75,7 +75,7 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
     action_dim = eval_env.action_space.shape[0]
     rng = np.random.default_rng(cfg.seed)
     replay = Replay(None, cfg.replay_capacity, rng)
-    for episode in load_dataset(cfg.dataset, cfg.task, action_dim, "--dataset"):
+    for episode in load_dataset(cfg.dataset, cfg, action_dim, "--dataset"):
         replay.add(episode)
     if not replay.ready(cfg.seq_len):
         raise FinetuneError(f"--dataset {cfg.dataset}: no episode holds seq_len = {cfg.seq_len} steps; lower seq_len")

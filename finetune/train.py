@@ -68,20 +68,27 @@ def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | N
         raise FinetuneError(f"--pretrained {pretrained}: {error}") from None
 
 
-def load_dataset(dataset_id: str | None, task: str, action_dim: int, flag: str) -> list[dict[str, np.ndarray]]:
+def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, flag: str) -> list[dict[str, np.ndarray]]:
     """Episodes of a dataset (finetune.datasets, Minari) in the replay's format, for offline RL (--dataset) and
-    imitation (--demos); every problem is a FinetuneError naming `flag`."""
+    imitation (--demos). The dataset must be of cfg.task and, where it records them, have been collected
+    with cfg's action_repeat and fast_render (the dynamics and frames the agent is evaluated on); every
+    problem is a FinetuneError naming `flag`."""
     if not dataset_id:
         raise FinetuneError(f"{flag} ID is needed: a dataset written by `hauwm datasets collect` (or set "
                             f"{flag.lstrip('-')} in the config)")
     from finetune.datasets import DatasetError, load_episodes
+    from finetune.datasets.minari_io import hauwm_metadata, open_dataset
 
     try:
-        episodes = load_episodes(dataset_id, task=task, action_dim=action_dim)
+        episodes = load_episodes(dataset_id, task=cfg.task, action_dim=action_dim, progress=False)
+        collected = hauwm_metadata(open_dataset(dataset_id))
     except DatasetError as error:
         raise FinetuneError(f"{flag} {dataset_id}: {error}") from None
-    if not episodes:
-        raise FinetuneError(f"{flag} {dataset_id}: the dataset holds no episode")
+    for key in ("action_repeat", "fast_render"):
+        if key in collected and collected[key] != getattr(cfg, key):
+            raise FinetuneError(f"{flag} {dataset_id} was collected with {key}={collected[key]!r}, this run has "
+                                f"{key}={getattr(cfg, key)!r}: set {key}: {collected[key]} in the config "
+                                f"(--set {key}={collected[key]})")
     return episodes
 
 

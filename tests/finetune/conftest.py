@@ -66,14 +66,15 @@ def random_episodes():
 
 @pytest.fixture
 def minari_dataset(tmp_path, monkeypatch):
-    """`minari_dataset(dataset_id, episodes, task)`: write a real Minari dataset (finetune.datasets.write_dataset)
-    under a temporary MINARI_DATASETS_PATH; returns the id."""
+    """`minari_dataset(dataset_id, episodes, task, **settings)`: write a real Minari dataset
+    (finetune.datasets.write_dataset, `settings` as its collection settings) under a temporary
+    MINARI_DATASETS_PATH; returns the id."""
     from finetune.datasets import write_dataset
 
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
 
-    def write(dataset_id: str, episodes: list[dict], task: str) -> str:
-        write_dataset(dataset_id, episodes, {"task": task, "source": "tests"})
+    def write(dataset_id: str, episodes: list[dict], task: str, **settings) -> str:
+        write_dataset(dataset_id, episodes, {"task": task, "source": "tests", **settings})
         return dataset_id
 
     return write

@@ -91,7 +91,8 @@ def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir,
                       progress=False)
 
 
-def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_episodes):
+def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_episodes,
+                                                            minari_dataset, random_episodes):
     with pytest.raises(ConfigError, match="model_heads >= 2"):
         offline_config(tiny_config, tmp_path, 2, model_heads=1)
     with pytest.raises(ConfigError, match="penalty must be one of"):
@@ -102,5 +103,9 @@ def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_con
         train_offline(offline_config(tiny_config, tmp_path / "a", 2, dataset=None), export_dir, progress=False)
     with pytest.raises(FinetuneError, match="--dataset test/nope-v0: .*not found under MINARI_DATASETS_PATH"):
         train_offline(offline_config(tiny_config, tmp_path / "b", 2, dataset="test/nope-v0"), export_dir, progress=False)
+    minari_dataset("test/repeat2-v0", random_episodes(2, 12, 4), "metaworld_drawer_close", action_repeat=2)
+    with pytest.raises(FinetuneError, match="collected with action_repeat=2, this run has action_repeat=1"):
+        train_offline(offline_config(tiny_config, tmp_path / "r", 2, dataset="test/repeat2-v0"), export_dir,
+                      progress=False)
     with pytest.raises(FinetuneError, match="no episode holds seq_len = 20"):
         train_offline(offline_config(tiny_config, tmp_path / "c", 2, seq_len=20), export_dir, progress=False)
