@@ -109,3 +109,27 @@ def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_con
                       progress=False)
     with pytest.raises(FinetuneError, match="no episode holds seq_len = 20"):
         train_offline(offline_config(tiny_config, tmp_path / "c", 2, seq_len=20), export_dir, progress=False)
+
+
+def test_the_frozen_disagreement_term_gives_the_actor_no_gradient(export_dir, tiny_config):
+    """The frozen stream imagines without the actions: adding its disagreement to u changes the rewards but
+    not their gradient with respect to the actor (dynamics backprop)."""
+    from finetune.offline import OfflineAgent
+    from finetune.train import build_agent
+
+    cfg = tiny_config(paradigm="offline", model_heads=3, horizon=3, penalty_frozen_weight=10.0)
+    agent = build_agent(cfg, 2, export_dir, torch.device("cpu"), OfflineAgent)
+    generator = np.random.default_rng(0)
+    start, _ = agent.world_model.observe(torch.as_tensor(generator.integers(0, 256, (2, 4, 3, 64, 64), dtype=np.uint8)),
+                                         torch.as_tensor(generator.uniform(-1, 1, (2, 4, 2)).astype(np.float32)))
+    start = type(start)(*(type(s)(s.deter.detach(), s.stoch.detach()) for s in start))
+    results = []
+    for weight in (0.0, 10.0):
+        agent.penalty.frozen_weight = weight
+        torch.manual_seed(1)
+        rewards = agent.world_model.imagine(start, agent.behavior.actor, 3, agent.penalty)[1]
+        grads = torch.autograd.grad(rewards.sum(), list(agent.behavior.actor.parameters()))
+        results.append((rewards.detach(), grads))
+    (rewards_without, grads_without), (rewards_with, grads_with) = results
+    assert (rewards_with < rewards_without - 1e-6).all()  # the term is there
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(grads_without, grads_with))
