@@ -37,8 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 TASK = "metaworld_drawer_close"
 ENV = dict(action_repeat=2, time_limit=100, fast_render=True)
-CPU_SETTINGS = dict(batch_size=16, seq_len=16, units=200, hidden=100, log_every=50, eval_episodes=10,
-                    device="cpu", threads=1, **ENV)
+CPU_SETTINGS = dict(batch_size=16, seq_len=16, units=200, hidden=100, log_every=50, device="cpu", threads=1, **ENV)
 OFFLINE = dict(paradigm="offline", model_heads=7, horizon=5, penalty="loglik_std")
 IMITATION = dict(paradigm="imitation", horizon=15, prefill=1000, train_every=8, demo_fraction=0.5)
 
@@ -89,7 +88,7 @@ def run(name: str, settings: dict, args: argparse.Namespace) -> None:
     from finetune.offline import train_offline
 
     cfg = load_config(None, {**CPU_SETTINGS, "task": TASK, "seed": args.seed, "logdir": str(args.logdir / name),
-                             **settings})
+                             "eval_episodes": args.eval_episodes, **settings})
     started = time.perf_counter()
     print(f"== {name}: {cfg.steps} {'updates' if cfg.paradigm == 'offline' else 'env steps'}", flush=True)
     (train_offline if cfg.paradigm == "offline" else train_imitation)(cfg, args.pretrained, progress=not args.no_progress)
@@ -108,7 +107,7 @@ def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[flo
     low, high = refs["random"][0], refs["expert"][0]
     print(f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; "
           f"task {TASK}, {ENV}, seed {args.seed}")
-    print(f"{'run':<28} {'at':>8} {'return (10 episodes)':>22} {'normalised':>11} {'success':>8} "
+    print(f"{'run':<28} {'at':>8} {f'return ({args.eval_episodes} episodes)':>22} {'normalised':>11} {'success':>8} "
           f"{'u dataset':>10} {'u imagined':>11}")
     for name, (mean, std, success) in refs.items():
         print(f"{name + ' policy':<28} {'':>8} {mean:>12.1f} ± {std:<7.1f} {(mean - low) / (high - low):>11.2f} "
@@ -140,6 +139,7 @@ def main() -> int:
     p.add_argument("--noisy-episodes", type=int, default=40)
     p.add_argument("--noise", type=float, default=0.5, help="σ of the noisy expert's action noise")
     p.add_argument("--demos", type=int, default=10, help="expert demonstrations for imitation (≤ 10)")
+    p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (and per reference)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--report", action="store_true", help="only print the table of what has run")
     p.add_argument("--no-progress", action="store_true")
@@ -165,7 +165,7 @@ def main() -> int:
     if not args.report:
         for name, settings in plans.items():
             run(name, settings, args)
-    report(args, list(plans), references(10, args.seed + 10_000))
+    report(args, list(plans), references(args.eval_episodes, args.seed + 10_000))
     return 0
 
 

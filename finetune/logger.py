@@ -1,7 +1,8 @@
 """Run logs: one CSV per kind of record (`train.csv`, `episodes.csv`, `eval.csv`) and TensorBoard scalars.
 
-Each CSV row is one record with its step first (`env_step`; offline runs count `update`s); a resumed run appends to the same files, and a record
-with a column the file lacks widens its header (older rows get empty cells) rather than losing the column.
+Each CSV row is one record with its step first (`env_step`; offline runs count `update`s); a resumed run
+appends to the same files, and a record with a column the file lacks widens its header (older rows get
+empty cells) rather than losing the column.
 TensorBoard tags are `<kind>/<name>` (e.g. `eval/return`, `train/model_loss`), written to the run directory.
 """
 

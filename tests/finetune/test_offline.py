@@ -133,3 +133,19 @@ def test_the_frozen_disagreement_term_gives_the_actor_no_gradient(export_dir, ti
     (rewards_without, grads_without), (rewards_with, grads_with) = results
     assert (rewards_with < rewards_without - 1e-6).all()  # the term is there
     assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(grads_without, grads_with))
+
+
+@pytest.mark.parametrize("rule", ["random", "mean"])
+def test_imagination_draws_the_next_latent_from_one_head_per_trajectory_or_from_their_mean(tiny_config, rule):
+    from finetune.world_model import WorldModel
+
+    world_model = WorldModel(tiny_config(agent="scratch", model_heads=4, imagine_heads=rule, deter=8, stoch=3), 2,
+                             None, None)
+    mean = torch.arange(4.0)[:, None, None].expand(4, 50, 3).clone()  # head i predicts i everywhere
+    sample = world_model.next_stoch(mean, torch.full_like(mean, 1e-6))  # [50, 3]
+    if rule == "mean":
+        assert torch.allclose(sample, torch.full_like(sample, 1.5), atol=1e-4)
+    else:
+        heads = sample[:, 0].round()
+        assert torch.allclose(sample, heads[:, None].expand_as(sample), atol=1e-4)  # one head per trajectory
+        assert len(heads.unique()) > 1  # and not the same head for all
