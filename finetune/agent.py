@@ -14,7 +14,7 @@ from torch import nn
 
 from finetune.behavior import ActorCritic
 from finetune.config import FinetuneConfig
-from finetune.world_model import Latent, WorldModel
+from finetune.world_model import Latent, RewardFn, WorldModel
 
 
 class Agent(nn.Module):
@@ -34,8 +34,13 @@ class Agent(nn.Module):
     def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
         tensors = {key: torch.as_tensor(value, device=self.device) for key, value in batch.items()}
         start, metrics = self.world_model.update(tensors)
-        metrics.update(self.behavior.update(self.world_model.imagine, start))
+        metrics.update(self.behavior.update(self.world_model.imagine, start, self.imagined_reward(tensors, start)))
         return metrics
+
+    def imagined_reward(self, batch: dict[str, torch.Tensor], start: Latent) -> RewardFn | None:
+        """The reward imagination trains the actor-critic on, for this batch: None, the reward head (online RL).
+        Offline RL (eq. 6) and imitation (eq. 5) override it (finetune/offline.py, finetune/imitation.py)."""
+        return None
 
     def initial(self) -> tuple[Latent, torch.Tensor]:
         """The latent and the zero 'previous action' at the start of an episode (batch of one)."""

@@ -127,8 +127,9 @@ class Critic(nn.Module):
 # but vanished, and an actor whose loc sits there on every state no longer moves (logged as actor_saturated)
 SATURATED = 0.999
 
-# imagine(start, policy, horizon) -> (feats [H+1, N, F], rewards [H, N], policy entropies [H, N])
-Imagine = Callable[[object, Callable[[torch.Tensor], TruncatedNormal], int], tuple[torch.Tensor, ...]]
+# imagine(start, policy, horizon[, reward=fn]) -> (feats [H+1, N, F], rewards [H, N], policy entropies [H, N]);
+# `reward` (a keyword, passed only when given) is a reward function of the rollout (finetune.world_model.RewardFn)
+Imagine = Callable[..., tuple[torch.Tensor, ...]]
 
 
 class ActorCritic(nn.Module):
@@ -145,9 +146,11 @@ class ActorCritic(nn.Module):
         self.horizon, self.gamma, self.lam = horizon, gamma, lam
         self.entropy_scale, self.target_fraction, self.grad_clip = entropy_scale, target_fraction, grad_clip
 
-    def update(self, imagine: Imagine, start: object) -> dict[str, float]:
-        """One actor and one critic step on trajectories imagined from the posterior states `start`."""
-        feats, rewards, entropy = imagine(start, self.actor, self.horizon)  # [H+1,N,F], [H,N], [H,N]
+    def update(self, imagine: Imagine, start: object, reward: Callable | None = None) -> dict[str, float]:
+        """One actor and one critic step on trajectories imagined from the posterior states `start`, with the
+        rewards of `reward` (None: the world model's reward head; offline RL and imitation pass their own)."""
+        given = {} if reward is None else {"reward": reward}
+        feats, rewards, entropy = imagine(start, self.actor, self.horizon, **given)  # [H+1,N,F], [H,N], [H,N]
         values = self.target_critic(feats)  # [H+1, N]; gradients reach feats (dynamics backprop)
         returns = lambda_return(rewards, values, self.gamma, self.lam)  # [H, N]
         weights = self.gamma ** torch.arange(self.horizon, dtype=returns.dtype, device=returns.device)[:, None]

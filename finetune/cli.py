@@ -3,8 +3,12 @@
     hauwm finetune --config configs/finetune/dmc_cheetah_run.yaml --pretrained exports/hauwm
     hauwm finetune --config configs/finetune/demo.yaml --pretrained DIR --steps 2000 --logdir runs/demo
     hauwm finetune --config configs/finetune/dmc_cheetah_run.yaml --set agent=scratch   # baseline
+    hauwm finetune offline --config configs/offline/metaworld_drawer_close.yaml --pretrained DIR --dataset ID
+    hauwm finetune imitate --config configs/imitation/metaworld_drawer_close.yaml --pretrained DIR --demos ID
 
-Running again with the same --logdir resumes from its checkpoint.
+Without a subcommand it runs online RL; `offline` learns from a fixed dataset (no environment step but
+evaluation; --steps counts updates there) and `imitate` from expert demonstrations without the
+environment's reward (docs/downstream.md). Running again with the same --logdir resumes from its checkpoint.
 """
 
 from __future__ import annotations
@@ -12,14 +16,29 @@ from __future__ import annotations
 import argparse
 import sys
 
+# subcommand -> (paradigm, its data flag, the config setting that flag fills, help)
+SUBCOMMANDS = {
+    "offline": ("offline", "--dataset", "dataset", "offline RL from a fixed dataset (LOMPO-style, eq. 6)"),
+    "imitate": ("imitation", "--demos", "demos", "imitation of expert demonstrations (VMAIL-style, eq. 5)"),
+}
 
-def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hauwm finetune", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+COMMANDS = {"online": "hauwm finetune", "offline": "hauwm finetune offline", "imitation": "hauwm finetune imitate"}
+CONFIG_DIRS = {"online": "configs/finetune", "offline": "configs/offline", "imitation": "configs/imitation"}
+
+
+def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
+    prog = "hauwm finetune" + (f" {subcommand}" if subcommand else "")
+    description = __doc__ if subcommand is None else f"{SUBCOMMANDS[subcommand][3]}\n\n{__doc__}"
+    p = argparse.ArgumentParser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", required=True, help="YAML settings, e.g. configs/finetune/dmc_cheetah_run.yaml")
     p.add_argument("--pretrained", help="directory written by `hauwm pretrain export` (weights.safetensors + "
                                         "config.json); not needed with agent=scratch")
-    p.add_argument("--steps", type=int, help="env-step budget (overrides the config)")
+    if subcommand is not None:
+        _, flag, setting, _ = SUBCOMMANDS[subcommand]
+        p.add_argument(flag, dest=setting, metavar="ID", help="dataset id for finetune.datasets (a dataset written by "
+                                                               f"`hauwm datasets collect`); overrides the config's {setting}")
+    budget = "update budget (overrides the config)" if subcommand == "offline" else "env-step budget (overrides the config)"
+    p.add_argument("--steps", type=int, help=budget)
     p.add_argument("--logdir", help="run directory: logs, checkpoint, replay (overrides the config)")
     p.add_argument("--seed", type=int)
     p.add_argument("--device", help="auto, cpu or cuda")
@@ -32,22 +51,45 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from finetune.config import ConfigError, load_config, parse_override
     from finetune.pretrained import PretrainedError
-    from finetune.train import FinetuneError, train
+    from finetune.train import FinetuneError
 
-    args = parser().parse_args(sys.argv[1:] if argv is None else argv)
+    argv = sys.argv[1:] if argv is None else argv
+    subcommand = argv[0] if argv and argv[0] in SUBCOMMANDS else None
+    args = parser(subcommand).parse_args(argv[1:] if subcommand else argv)
+    paradigm = SUBCOMMANDS[subcommand][0] if subcommand else "online"
     try:
         overrides = dict(parse_override(text) for text in args.set)
-        for key in ("steps", "logdir", "seed", "device"):
-            if getattr(args, key) is not None:
+        for key in ("steps", "logdir", "seed", "device", "dataset", "demos"):
+            if getattr(args, key, None) is not None:
                 overrides[key] = getattr(args, key)
         cfg = load_config(args.config, overrides)
-        result = train(cfg, args.pretrained, progress=not args.no_progress)
+        if cfg.paradigm != paradigm:
+            raise ConfigError(f"{args.config} is a config for {cfg.paradigm} training (paradigm: {cfg.paradigm}): run "
+                              f"`{COMMANDS[cfg.paradigm]} --config {args.config} …`, or give `{COMMANDS[paradigm]}` "
+                              f"a config from {CONFIG_DIRS[paradigm]}/")
+        result = _runner(paradigm)(cfg, args.pretrained, progress=not args.no_progress)
     except (ConfigError, PretrainedError, FinetuneError) as error:
-        print(f"hauwm finetune: error: {error}", file=sys.stderr)
+        print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2
     summary = ", ".join(f"{k} {v:.4g}" for k, v in result.items())
-    print(f"finished {cfg.task} ({cfg.agent}) in {cfg.logdir}: {summary or 'no evaluation yet'}")
+    kind = cfg.agent if paradigm == "online" else f"{cfg.agent}, {paradigm}"
+    print(f"finished {cfg.task} ({kind}) in {cfg.logdir}: {summary or 'no evaluation yet'}")
     return 0
+
+
+def _runner(paradigm: str):
+    """The entry point of a paradigm, imported only when asked for."""
+    if paradigm == "offline":
+        from finetune.offline import train_offline
+
+        return train_offline
+    if paradigm == "imitation":
+        from finetune.imitation import train_imitation
+
+        return train_imitation
+    from finetune.train import train
+
+    return train
 
 
 if __name__ == "__main__":

@@ -13,11 +13,19 @@ from pathlib import Path
 
 import yaml
 
+PARADIGMS = ("online", "offline", "imitation")
+PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
+
+
+class ConfigError(ValueError):
+    pass
+
 
 @dataclass
 class FinetuneConfig:
     task: str = "dmc_cheetah_run"
     agent: str = "hauwm"  # "hauwm": dual-stream on the frozen export; "scratch": DreamerV2-like baseline
+    paradigm: str = "online"  # "online" RL, "offline" RL or "imitation" (docs/downstream.md); set by the subcommand
     seed: int = 0
     logdir: str = "runs/finetune"
     device: str = "auto"  # "auto" (cuda when available), "cpu" or "cuda"
@@ -41,6 +49,8 @@ class FinetuneConfig:
     deter: int | None = None  # None: the export's size (200 for the scratch baseline); the decoder copy needs equal sizes
     stoch: int | None = None  # None: the export's size (30 for the scratch baseline)
     hidden: int = 200
+    model_heads: int = 1  # prior heads of the new stream (offline RL's ensemble, LOMPO: 7); 1 = the paper's online agent
+    imagine_heads: str = "random"  # with model_heads > 1, imagination draws s̃ from a "random" head per step (LOMPO) or the "mean"
     units: int = 400  # reward head, actor and critic: 2 hidden layers × 400 ELU
     noise_std: float = 0.01  # Gaussian noise on the frozen stream's k = 1 temporal embedding
     k1_clip_length: float | None = None  # T of the relative k = 1 embedding; None = the export's reference length
@@ -60,10 +70,33 @@ class FinetuneConfig:
     target_fraction: float = 0.02
     grad_clip: float = 100.0
     layer_norm: bool = True  # LayerNorm before each ELU of actor and critic; not in Table 3 (docs/finetuning.md)
+    # offline RL (`hauwm finetune offline`, eq. 6: r̃ = r − penalty_scale · u); steps and *_every count updates there
+    dataset: str | None = None  # dataset id for finetune.datasets.load_episodes (--dataset)
+    penalty: str = "loglik_std"  # u: "loglik_std" (LOMPO), "max_std" or "mean_disagreement" (offline DreamerV2)
+    penalty_scale: float = 5.0  # λ of eq. 6 (LOMPO's default; offline DreamerV2 uses 10 with mean_disagreement)
+    penalty_frozen_weight: float = 0.0  # weight of the frozen stream's head disagreement added to u (docs/downstream.md)
+    # imitation (`hauwm finetune imitate`, eq. 5): no env reward is used for learning
+    demos: str | None = None  # expert demonstrations' dataset id (--demos)
+    demo_fraction: float = 0.5  # share of each world-model batch drawn from the demonstrations
+    disc_lr: float = 8e-5  # discriminator Adam (VMAIL)
+    disc_gp_scale: float = 10.0  # weight of its input-space gradient penalty (WGAN-GP / DAC)
 
-
-class ConfigError(ValueError):
-    pass
+    def __post_init__(self) -> None:
+        choices = {"paradigm": PARADIGMS, "imagine_heads": ("random", "mean"), "penalty": PENALTIES}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"setting {name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
+        if self.model_heads < 1:
+            raise ConfigError(f"setting model_heads must be >= 1, got {self.model_heads}")
+        if not 0.0 < self.demo_fraction < 1.0:
+            raise ConfigError(f"setting demo_fraction must lie strictly between 0 and 1, got {self.demo_fraction}")
+        if min(self.penalty_scale, self.penalty_frozen_weight, self.disc_gp_scale) < 0:
+            raise ConfigError("settings penalty_scale, penalty_frozen_weight and disc_gp_scale must be >= 0")
+        if self.paradigm == "offline" and self.penalty != "max_std" and self.penalty_scale > 0 and self.model_heads < 2:
+            raise ConfigError(f"penalty {self.penalty!r} measures disagreement between the new stream's prior heads: "
+                              f"offline RL needs model_heads >= 2 (LOMPO: 7), got {self.model_heads}; or penalty_scale=0")
+        if self.agent == "scratch" and self.penalty_frozen_weight > 0:
+            raise ConfigError("penalty_frozen_weight needs the frozen stream: the scratch agent has none; set it to 0")
 
 
 def load_config(path: str | Path | None, overrides: dict[str, object] | None = None) -> FinetuneConfig:

@@ -1,7 +1,8 @@
 """Run logs: one CSV per kind of record (`train.csv`, `episodes.csv`, `eval.csv`) and TensorBoard scalars.
 
-Each CSV row is one record with `env_step` first; a resumed run appends to the same files, and a record
-with a column the file lacks widens its header (older rows get empty cells) rather than losing the column.
+Each CSV row is one record with its step first (`env_step`; offline runs count `update`s); a resumed run
+appends to the same files, and a record with a column the file lacks widens its header (older rows get
+empty cells) rather than losing the column.
 TensorBoard tags are `<kind>/<name>` (e.g. `eval/return`, `train/model_loss`), written to the run directory.
 """
 
@@ -15,13 +16,14 @@ from torch.utils.tensorboard import SummaryWriter
 
 
 class Logger:
-    def __init__(self, logdir: Path):
+    def __init__(self, logdir: Path, step_name: str = "env_step"):
         self.logdir = Path(logdir)
+        self.step_name = step_name
         self.logdir.mkdir(parents=True, exist_ok=True)
         self.writer = SummaryWriter(str(self.logdir))
 
-    def write(self, kind: str, env_step: int, values: dict[str, float]) -> None:
-        row = {"env_step": env_step, **values}
+    def write(self, kind: str, step: int, values: dict[str, float]) -> None:
+        row = {self.step_name: step, **values}
         path = self.logdir / f"{kind}.csv"
         header = []
         if path.exists():
@@ -42,7 +44,7 @@ class Logger:
                 writer.writerows([*rows, row])
             os.replace(tmp, path)
         for name, value in values.items():
-            self.writer.add_scalar(f"{kind}/{name}", value, env_step)
+            self.writer.add_scalar(f"{kind}/{name}", value, step)
         self.writer.flush()
 
     def close(self) -> None:

@@ -36,14 +36,15 @@ class AgentPolicy:
         return action
 
 
-def play_episode(env, policy: Policy) -> dict[str, np.ndarray]:
-    """Reset `env`, act with `policy` until the episode ends; returns the episode of T agent steps:
+def play_episode(env, policy: Policy, seed: int | None = None) -> dict[str, np.ndarray]:
+    """Reset `env` (reseeded with `seed` if given), act with `policy` until the episode ends; returns the
+    episode of T agent steps:
 
     obs uint8 [T+1, 3, H, W], action float32 [T+1, A] (entry 0 zeros; the clipped action the env applied),
     reward float32 [T+1] (entry 0 zero), terminal float32 [T+1] (1 at the last entry if it is a terminal
     state, 0 after a time limit) and, where the suite reports success, success float32 [T+1] (entry 0 zero).
     """
-    obs, _ = env.reset()
+    obs, _ = env.reset(seed=seed)
     policy.reset()
     episode = {"obs": [obs], "action": [np.zeros(env.action_space.shape, np.float32)], "reward": [0.0], "success": [0.0]}
     reports_success = False

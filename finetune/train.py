@@ -16,7 +16,7 @@ import fcntl
 import hashlib
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -51,19 +51,45 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | None, device: torch.device) -> Agent:
+def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | None, device: torch.device,
+                agent_class: type[Agent] = Agent) -> Agent:
+    """The agent (`agent_class`: Agent for online RL, or offline RL's and imitation's subclasses) on `device`."""
     from finetune.pretrained import k1_embedding, load_pretrained
 
     if cfg.agent == "scratch":
-        return Agent(cfg, action_dim).to(device)
+        return agent_class(cfg, action_dim).to(device)
     if pretrained is None:
         raise FinetuneError("agent 'hauwm' needs --pretrained DIR (an export of `hauwm pretrain export`); "
                             "or run the scratch baseline with --set agent=scratch")
     frozen = load_pretrained(pretrained)
     try:
-        return Agent(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
+        return agent_class(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
     except ValueError as error:  # sizes of the config that do not fit the export
         raise FinetuneError(f"--pretrained {pretrained}: {error}") from None
+
+
+def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, flag: str) -> list[dict[str, np.ndarray]]:
+    """Episodes of a dataset (finetune.datasets, Minari) in the replay's format, for offline RL (--dataset) and
+    imitation (--demos). The dataset must be of cfg.task and, where it records them, have been collected
+    with cfg's action_repeat and fast_render (the dynamics and frames the agent is evaluated on); every
+    problem is a FinetuneError naming `flag`."""
+    if not dataset_id:
+        raise FinetuneError(f"{flag} ID is needed: a dataset written by `hauwm datasets collect` (or set "
+                            f"{flag.lstrip('-')} in the config)")
+    from finetune.datasets import DatasetError, load_episodes
+    from finetune.datasets.minari_io import hauwm_metadata, open_dataset
+
+    try:
+        episodes = load_episodes(dataset_id, task=cfg.task, action_dim=action_dim, progress=False)
+        collected = hauwm_metadata(open_dataset(dataset_id))
+    except DatasetError as error:
+        raise FinetuneError(f"{flag} {dataset_id}: {error}") from None
+    for key in ("action_repeat", "fast_render"):
+        if key in collected and collected[key] != getattr(cfg, key):
+            raise FinetuneError(f"{flag} {dataset_id} was collected with {key}={collected[key]!r}, this run has "
+                                f"{key}={getattr(cfg, key)!r}: set {key}: {collected[key]} in the config "
+                                f"(--set {key}={collected[key]})")
+    return episodes
 
 
 def export_fingerprint(pretrained: str | Path | None) -> str:
@@ -77,22 +103,28 @@ def export_fingerprint(pretrained: str | Path | None) -> str:
     return digest.hexdigest()
 
 
-def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, int], fingerprint: str) -> None:
+def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, int], fingerprint: str,
+                    rng: np.random.Generator | None = None) -> None:
+    """`rng`: the replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
     state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
              "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state(),
              "export_sha256": fingerprint}
+    if rng is not None:
+        state["replay_rng"] = rng.bit_generator.state
     tmp = path.with_suffix(".tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str) -> dict[str, int]:
+def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
+                    rng: np.random.Generator | None = None) -> dict[str, int]:
     state = torch.load(path, map_location=agent.device, weights_only=True)
     if state["export_sha256"] != fingerprint:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the same export or use another --logdir")
-    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm"):
-        if state["config"].get(key) != getattr(cfg, key):  # .get: a checkpoint older than the setting
+    newer = {"paradigm": "online", "model_heads": 1, "dataset": None, "demos": None}  # what older checkpoints had
+    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm", *newer):
+        if state["config"].get(key, newer.get(key)) != getattr(cfg, key):  # .get: a checkpoint older than the setting
             raise FinetuneError(f"{path} was written by a run with {key}={state['config'].get(key)!r}, this run has "
                                 f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
     missing, unexpected = agent.load_state_dict(state["agent"], strict=False)
@@ -101,17 +133,20 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
         raise FinetuneError(f"{path} does not fit this agent (missing {missing[:3]}, unexpected {unexpected[:3]})")
     agent.load_optimizer_state_dicts(state["optimizers"])
     torch.set_rng_state(state["torch_rng"])
+    if rng is not None and "replay_rng" in state:
+        rng.bit_generator.state = state["replay_rng"]
     return dict(state["counters"])
 
 
-def evaluate(agent: Agent, env, episodes: int, task: str) -> dict[str, float]:
-    """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate."""
+def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None) -> dict[str, float]:
+    """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate.
+    `seed` reseeds the env first (the same episodes whenever this evaluation is run again, e.g. after resume)."""
     from finetune.envs.references import normalised_return
 
     policy = AgentPolicy(agent, explore=False)
     returns, successes = [], []
-    for _ in range(episodes):
-        episode = play_episode(env, policy)
+    for index in range(episodes):
+        episode = play_episode(env, policy, seed=seed if index == 0 else None)
         returns.append(float(episode["reward"].sum(dtype=np.float64)))
         successes.append(bool(episode.get("success", np.zeros(1)).any()))
     result = {"return": float(np.mean(returns)), "return_std": float(np.std(returns))}
@@ -142,13 +177,25 @@ def exclusive(logdir: Path) -> Iterator[None]:
         yield
 
 
+@dataclasses.dataclass(frozen=True)
+class LoopHooks:
+    """What imitation changes in this loop (finetune/imitation.py); the defaults are online RL's."""
+
+    agent_class: type[Agent] = Agent
+    # (cfg, replay directory, sampling rng, action dim) -> the replay; None: the online replay of the agent's episodes
+    make_replay: Callable[[FinetuneConfig, Path, np.random.Generator, int], Replay] | None = None
+    # reseed each training episode and each evaluation from its index, so that a run resumed from a
+    # checkpoint taken at an episode's end continues exactly as an unbroken run
+    reseed: bool = False
+
+
 def train(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: bool = True) -> dict[str, float]:
     """Run (or resume) fine-tuning in cfg.logdir until cfg.steps env steps; returns the last evaluation."""
     with exclusive(Path(cfg.logdir)):
         return run(cfg, pretrained, progress)
 
 
-def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> dict[str, float]:
+def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hooks: LoopHooks = LoopHooks()) -> dict[str, float]:
     """The loop itself, in a run directory this process holds the lock of."""
     from finetune.envs import make_env
 
@@ -162,26 +209,40 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> d
         probe = make_env(cfg.task, seed=cfg.seed, **env_kwargs)
     except ValueError as error:  # an unknown task name
         raise FinetuneError(f"task {cfg.task!r}: {error}") from None
-    agent = build_agent(cfg, probe.action_space.shape[0], pretrained, device)
+    action_dim = probe.action_space.shape[0]
+    agent = build_agent(cfg, action_dim, pretrained, device, hooks.agent_class)
     fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
     counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
                 "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
+    rng = np.random.default_rng([cfg.seed, 0])  # the replay's sampler; a checkpoint restores its state
     checkpoint = logdir / CHECKPOINT
     if checkpoint.exists():
-        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint)
+        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng)
     (logdir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
 
-    # a resumed run reseeds from its progress, so it does not replay the same random streams
+    # a resumed run reseeds from its progress, so it does not replay the same random streams; with hooks.reseed
+    # each episode is seeded from its index instead, in the envs of a fresh run (Meta-World draws its 50 goal
+    # placements from the seed an env is made with)
+    resumed = counters["episodes"] > 0 and not hooks.reseed
     seed = cfg.seed + counters["episodes"]
-    rng = np.random.default_rng([cfg.seed, counters["env_step"]])
-    env = probe if counters["episodes"] == 0 else make_env(cfg.task, seed=seed, **env_kwargs)
+    env = make_env(cfg.task, seed=seed, **env_kwargs) if resumed else probe
     env.action_space.seed(seed)
-    eval_env = make_env(cfg.task, seed=cfg.seed + 10_000 + counters["env_step"], **env_kwargs)
-    replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
+    eval_env = make_env(cfg.task, seed=cfg.seed + 10_000 + (counters["env_step"] if resumed else 0), **env_kwargs)
+    if hooks.make_replay is None:
+        replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
+    else:
+        replay = hooks.make_replay(cfg, logdir / "replay", rng, action_dim)
     replay.load()
     logger = Logger(logdir)
 
-    obs, _ = env.reset()
+    def reset() -> np.ndarray:
+        if not hooks.reseed:
+            return env.reset()[0]
+        episode_seed = cfg.seed + counters["episodes"]
+        env.action_space.seed(episode_seed)
+        return env.reset(seed=episode_seed)[0]
+
+    obs = reset()
     latent, prev_action = agent.initial()
     episode = {"obs": [obs], "action": [np.zeros(env.action_space.shape, np.float32)], "reward": [0.0]}
     last_eval: dict[str, float] = {}
@@ -205,7 +266,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> d
             counters["episodes"] += 1
             logger.write("episodes", counters["env_step"], {"return": float(sum(episode["reward"])),
                                                            "length": len(episode["reward"]) - 1})
-            obs, _ = env.reset()
+            obs = reset()
             latent, prev_action = agent.initial()
             episode = {"obs": [obs], "action": [episode["action"][0]], "reward": [0.0]}
 
@@ -224,12 +285,13 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> d
             window = {"time": now, "updates": counters["updates"], "metrics": []}
             counters["next_log"] = next_multiple(counters["env_step"], cfg.log_every)
         if counters["env_step"] >= counters["next_eval"] or counters["env_step"] >= cfg.steps:
-            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task)
+            eval_seed = cfg.seed + 10_000 + counters["env_step"] if hooks.reseed else None
+            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=eval_seed)
             logger.write("eval", counters["env_step"], last_eval)
             bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
             counters["next_eval"] = next_multiple(counters["env_step"], cfg.eval_every)
         if counters["env_step"] >= counters["next_checkpoint"] or counters["env_step"] >= cfg.steps:
-            save_checkpoint(checkpoint, agent, cfg, counters, fingerprint)
+            save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
             counters["next_checkpoint"] = next_multiple(counters["env_step"], cfg.checkpoint_every)
     bar.close()
     logger.close()

@@ -27,7 +27,14 @@ the frozen stream gets no loss at all.
 
 Imagination: the frozen stream advances open-loop with its ensemble mean μ̄ = (1/M) Σ_i μ_i (as in
 pre-training's open-loop prediction; it ignores actions), the new stream with the policy's actions,
-sampling s̃_t from its prior so that gradients of returns reach the actions (dynamics backprop).
+sampling s̃_t from its prior so that gradients of returns reach the actions (dynamics backprop). The
+imagined rewards are the reward head's R(s̃_t) unless a reward function of the whole rollout is passed
+(offline RL's penalised reward, eq. 6; imitation's discriminator reward, eq. 5).
+
+Prior heads (`model_heads`, 1 in the paper's online agent): offline RL gives the new stream M prior heads
+on its one GRU, as pre-training's ensemble RSSM has. Every head is trained against the posterior with the
+KL averaged over heads; imagination draws s̃_{t+1} from one random head per step and trajectory (LOMPO
+draws one per step for the whole batch) or from N(mean of the heads' means, mean of their stds).
 
 Scratch baseline (agent: scratch, DreamerV2-like with Gaussian latents): no frozen stream; a trainable
 encoder feeds the posterior directly, and the policy sees s̃_t only.
@@ -49,6 +56,23 @@ from model.config import WorldModelConfig
 from model.losses import gaussian_kl, reconstruction_nll
 from model.networks import Decoder, Encoder, preprocess
 from model.rssm import EnsembleRSSM, RSSMState
+
+
+class Rollout(NamedTuple):
+    """What imagination visited, handed to a reward function of it (H steps from N start states)."""
+
+    feats: torch.Tensor  # [H+1, N, F]  z_0..z_H
+    actions: torch.Tensor  # [H, N, A]  a_t, drawn by the policy at z_t
+    new_feats: torch.Tensor  # [H, N, F~]  features of s̃_1..s̃_H
+    new_stoch: torch.Tensor  # [H, N, S]  the sampled s̃_1..s̃_H
+    prior_mean: torch.Tensor  # [H, M, N, S]  every prior head of the new stream at each step
+    prior_std: torch.Tensor  # [H, M, N, S]
+    frozen_means: torch.Tensor | None  # [H, M', N, S']  the frozen stream's heads (None for the scratch baseline)
+
+
+# a reward function of an imagined rollout → rewards [H, N] (r_1..r_H); called where the world model's own
+# parameters record no gradient, so that gradients reach only the policy's actions (dynamics backprop)
+RewardFn = Callable[[Rollout], torch.Tensor]
 
 
 class Latent(NamedTuple):
@@ -87,7 +111,8 @@ class WorldModel(nn.Module):
             posterior_input = self.encoder.embed_dim
         deter = cfg.deter or (frozen.rssm.deter_dim if frozen is not None else WorldModelConfig.deter)
         stoch = cfg.stoch or (frozen.rssm.stoch_dim if frozen is not None else WorldModelConfig.stoch)
-        self.rssm = EnsembleRSSM(posterior_input, action_dim, deter, stoch, cfg.hidden, ensemble=1)
+        self.rssm = EnsembleRSSM(posterior_input, action_dim, deter, stoch, cfg.hidden, ensemble=cfg.model_heads)
+        self.imagine_heads = cfg.imagine_heads
         self.decoder = self._decoder(cfg, frozen)
         self.reward = mlp(self.rssm.feature_dim, 1, cfg.units)
         self.kl_balance, self.kl_scale, self.free_nats = cfg.kl_balance, cfg.kl_scale, cfg.free_nats
@@ -134,7 +159,7 @@ class WorldModel(nn.Module):
 
     def observe(self, obs: torch.Tensor, actions: torch.Tensor) -> tuple[Latent, tuple[torch.Tensor, ...]]:
         """obs uint8 [B, L, 3, 64, 64], actions [B, L, A] (a_{t−1} at t) → posterior latents [B, L, ·] and the
-        new stream's (post mean, post std, prior mean, prior std), each [B, L, S]."""
+        new stream's (post mean, post std [B, L, S], prior means, prior stds of every head [M, B, L, S])."""
         batch, length = obs.shape[:2]
         images = preprocess(obs)
         if self.frozen is not None:
@@ -145,7 +170,7 @@ class WorldModel(nn.Module):
         else:
             frozen_state, posterior_input = None, self.encoder(images)
         new = self.rssm.observe(posterior_input, actions)
-        dists = (new.post_mean, new.post_std, new.prior_mean[0], new.prior_std[0])
+        dists = (new.post_mean, new.post_std, new.prior_mean, new.prior_std)
         return Latent(frozen_state, RSSMState(new.deter, new.stoch)), dists
 
     def loss(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, Latent, dict[str, float]]:
@@ -153,7 +178,11 @@ class WorldModel(nn.Module):
         feat = self.rssm.feature(latent.new)  # [B, L, F~]
         recon = self.decoder(feat)  # [B, L, 3, 64, 64]
         recon_nll = reconstruction_nll(recon, preprocess(batch["obs"])).mean()
-        reward_nll = 0.5 * (self.reward(feat).squeeze(-1) - batch["reward"]).pow(2).mean()
+        if "reward" in batch:
+            reward_nll = 0.5 * (self.reward(feat).squeeze(-1) - batch["reward"]).pow(2).mean()
+        else:  # imitation: no environment reward is ever learned from
+            reward_nll = feat.new_zeros(())
+        # every head against the posterior, averaged over heads (and batch and time): [M, B, L] → scalar
         kl_prior = gaussian_kl(post_mean.detach(), post_std.detach(), prior_mean, prior_std).mean()  # trains the prior
         kl_post = gaussian_kl(post_mean, post_std, prior_mean.detach(), prior_std.detach()).mean()  # regularises q
         kl = self.kl_balance * kl_prior.clamp(min=self.free_nats) + (1 - self.kl_balance) * kl_post.clamp(min=self.free_nats)
@@ -191,16 +220,31 @@ class WorldModel(nn.Module):
         new = self.rssm.obs_step(latent.new, prev_action, posterior_input)[0]
         return Latent(frozen, new)
 
-    def imagine(self, start: Latent, policy: Callable, horizon: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def next_stoch(self, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+        """Sample s̃_{t+1} from the prior heads mean, std [M, N, S] → [N, S] (reparameterised): the one head when
+        M = 1; else a random head per trajectory (`imagine_heads: random`) or N(mean of means, mean of stds)."""
+        if mean.shape[0] == 1:
+            mean, std = mean[0], std[0]
+        elif self.imagine_heads == "mean":
+            mean, std = mean.mean(0), std.mean(0)
+        else:
+            pick = torch.randint(mean.shape[0], (1, mean.shape[1], 1), device=mean.device).expand(1, *mean.shape[1:])
+            mean, std = mean.gather(0, pick)[0], std.gather(0, pick)[0]
+        return mean + std * torch.randn_like(std)
+
+    def imagine(self, start: Latent, policy: Callable, horizon: int,
+                reward: RewardFn | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Roll out `horizon` steps from every start state ([B, L, ·] flattened to N = B·L).
 
-        Returns feats z_0..z_H [H+1, N, F], rewards R(s̃_1..s̃_H) [H, N] and the policy's entropies [H, N].
-        Gradients reach the policy through the new stream's transitions and the reward head, whose own
-        parameters record no gradient here (they are trained by the model loss only).
+        Returns feats z_0..z_H [H+1, N, F], rewards [H, N] and the policy's entropies [H, N]. The rewards are
+        the reward head's R(s̃_1..s̃_H), or `reward(rollout)` when given. Gradients reach the policy through the
+        new stream's transitions and the reward, whose own parameters record no gradient here (the world
+        model's are trained by the model loss only; a reward function guards its own).
         """
         flat = Latent(*(None if s is None else RSSMState(s.deter.flatten(0, 1), s.stoch.flatten(0, 1)) for s in start))
         frozen, new = flat
         feats, new_feats, entropies = [self.feature(flat)], [], []
+        actions, stochs, means, stds, frozen_means = [], [], [], [], []
         with no_param_grads(self):
             for _ in range(horizon):
                 dist = policy(feats[-1].detach())
@@ -208,11 +252,25 @@ class WorldModel(nn.Module):
                 entropies.append(dist.entropy())
                 if frozen is not None:
                     with torch.no_grad():
-                        deter, means, _ = self.frozen.rssm.img_step(frozen, self.frozen_cond(action.shape[0]))
-                        frozen = RSSMState(deter, means.mean(0))  # ensemble mean μ̄
-                deter, mean, std = self.rssm.img_step(new, action)
-                new = RSSMState(deter, mean[0] + std[0] * torch.randn_like(std[0]))
+                        deter, heads, _ = self.frozen.rssm.img_step(frozen, self.frozen_cond(action.shape[0]))
+                        frozen = RSSMState(deter, heads.mean(0))  # ensemble mean μ̄
+                    frozen_means.append(heads)
+                deter, mean, std = self.rssm.img_step(new, action)  # mean, std [M, N, S]
+                new = RSSMState(deter, self.next_stoch(mean, std))
                 new_feats.append(self.rssm.feature(new))
                 feats.append(self.feature(Latent(frozen, new)))
-            rewards = self.reward(torch.stack(new_feats)).squeeze(-1)  # [H, N]
+                actions.append(action)
+                stochs.append(new.stoch)
+                means.append(mean)
+                stds.append(std)
+            if reward is None:
+                rewards = self.predicted_reward(torch.stack(new_feats))  # [H, N]
+            else:
+                rollout = Rollout(torch.stack(feats), torch.stack(actions), torch.stack(new_feats), torch.stack(stochs),
+                                  torch.stack(means), torch.stack(stds), torch.stack(frozen_means) if frozen_means else None)
+                rewards = reward(rollout)
         return torch.stack(feats), rewards, torch.stack(entropies)
+
+    def predicted_reward(self, new_feats: torch.Tensor) -> torch.Tensor:
+        """The reward head R(s̃) on new-stream features [..., F~] → [...]."""
+        return self.reward(new_feats).squeeze(-1)

@@ -2,7 +2,7 @@
 
     hauwm shards   ...   data_pipeline.cli   (SSv2 -> WebDataset shards, inspect, preview, sample data)
     hauwm pretrain ...   model.cli           (LightningCLI fit, export, analyze)
-    hauwm finetune ...   finetune.cli        (online RL from the frozen export)
+    hauwm finetune ...   finetune.cli        (online RL, `offline` RL and `imitate`, from the frozen export)
     hauwm datasets ...   finetune.datasets.cli (Minari datasets for offline RL: collect, merge, inspect, list)
 """
 
@@ -14,7 +14,7 @@ import sys
 STAGES = {
     "shards": ("data_pipeline.cli", "shard SSv2 into WebDataset tars, inspect and preview them"),
     "pretrain": ("model.cli", "pre-train the ensemble RSSM (fit), export it, analyze it"),
-    "finetune": ("finetune.cli", "train an agent on a control task from the frozen export"),
+    "finetune": ("finetune.cli", "train an agent on a control task from the frozen export (online, offline, imitate)"),
     "datasets": ("finetune.datasets.cli", "collect, merge, inspect and list Minari datasets for offline RL"),
 }
 

@@ -40,3 +40,41 @@ def tiny_config():
 @pytest.fixture
 def export_sizes() -> WorldModelConfig:
     return EXPORT_SIZES
+
+
+def _random_episode(rng, length: int, action_dim: int) -> dict:
+    action = rng.uniform(-1, 1, (length + 1, action_dim)).astype("float32")
+    action[0] = 0.0
+    reward = rng.uniform(0, 1, length + 1).astype("float32")
+    reward[0] = 0.0
+    return {"obs": rng.integers(0, 256, (length + 1, 3, 64, 64), dtype="uint8"), "action": action, "reward": reward,
+            "success": (reward > 0.9).astype("float32")}
+
+
+@pytest.fixture
+def random_episodes():
+    """`random_episodes(count, length, action_dim, seed)`: episodes in finetune.replay's format (entry 0 has a
+    zero action and reward; `success` as load_episodes gives it), random frames, actions and rewards."""
+    import numpy as np
+
+    def make(count: int, length: int, action_dim: int, seed: int = 0) -> list[dict]:
+        rng = np.random.default_rng(seed)
+        return [_random_episode(rng, length, action_dim) for _ in range(count)]
+
+    return make
+
+
+@pytest.fixture
+def minari_dataset(tmp_path, monkeypatch):
+    """`minari_dataset(dataset_id, episodes, task, **settings)`: write a real Minari dataset
+    (finetune.datasets.write_dataset, `settings` as its collection settings) under a temporary
+    MINARI_DATASETS_PATH; returns the id."""
+    from finetune.datasets import write_dataset
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "minari"))
+
+    def write(dataset_id: str, episodes: list[dict], task: str, **settings) -> str:
+        write_dataset(dataset_id, episodes, {"task": task, "source": "tests", **settings})
+        return dataset_id
+
+    return write

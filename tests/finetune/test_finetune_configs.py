@@ -38,3 +38,33 @@ def test_overrides_are_typed_and_unknown_keys_rejected(tmp_path):
         load_config(tmp_path / "nope.yaml")
     with pytest.raises(ConfigError, match="agent must be"):
         load_config(None, {"agent": "apv"})
+
+
+TABLE2_TASKS = ("dmc_cheetah_run", "dmc_hopper_hop", "metaworld_dial_turn", "metaworld_drawer_close", "robodesk_push_green")
+ROOT = CONFIGS.parent
+
+
+@pytest.mark.parametrize("task", TABLE2_TASKS)
+def test_every_table2_task_has_an_offline_and_an_imitation_config(task):
+    offline = load_config(ROOT / "offline" / f"{task}.yaml")
+    assert (offline.task, offline.paradigm, offline.horizon, offline.model_heads) == (task, "offline", 5, 7)
+    assert offline.eval_episodes >= 10 and offline.penalty == "loglik_std"
+    imitation = load_config(ROOT / "imitation" / f"{task}.yaml")
+    assert (imitation.task, imitation.paradigm, imitation.eval_episodes) == (task, "imitation", 10)
+    assert imitation.model_heads == 1 and imitation.steps == (1_000_000 if task.startswith("dmc") else 250_000)
+
+
+@pytest.mark.parametrize("paradigm", ["offline", "imitation"])
+def test_downstream_demo_configs_are_small_drawer_close_runs(paradigm):
+    cfg = load_config(ROOT / paradigm / "demo.yaml")
+    assert (cfg.paradigm, cfg.task, cfg.fast_render) == (paradigm, "metaworld_drawer_close", True)
+    assert cfg.units <= 64 and cfg.steps <= 1000
+
+
+def test_bad_downstream_settings_are_refused():
+    for settings, message in [({"paradigm": "batch"}, "paradigm must be one of"),
+                              ({"imagine_heads": "all"}, "imagine_heads must be one of"),
+                              ({"model_heads": 0}, "model_heads must be >= 1"),
+                              ({"penalty_scale": -1}, "must be >= 0")]:
+        with pytest.raises(ConfigError, match=message):
+            load_config(None, settings)

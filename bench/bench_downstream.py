@@ -1,0 +1,173 @@
+"""Learning checks of offline RL and imitation on a CPU: Meta-World drawer close from 64×64 pixels.
+
+    python bench/bench_downstream.py --pretrained DIR                          # everything, hours on a CPU
+    python bench/bench_downstream.py --pretrained DIR --only offline --updates 600
+    python bench/bench_downstream.py --pretrained DIR --report                 # the table of finished runs
+
+One command, in LOGDIR (default runs/bench_downstream), each step skipped when its output is there:
+
+1. datasets (Minari, under LOGDIR/minari unless MINARI_DATASETS_PATH is set): clean scripted-expert
+   episodes, noisy ones (the expert with N(0, σ²) action noise: the "medium" part), their merge (medexp),
+   and ≤ 10 separate expert demonstrations for imitation;
+2. the random policy's and the expert's returns at the same env settings (10 episodes each);
+3. offline RL on medexp with the penalty (λ = --lam, u = loglik_std), the same with λ = 0, and the same
+   with the frozen stream's disagreement added (one run per --frozen-weights value > 0);
+4. imitation from the demonstrations;
+5. a table: return over the last evaluation's 10 episodes (mean ± std), normalised between the random
+   policy (0) and the scripted expert (1) measured here at the same settings (short episodes, so Table 4's
+   500-step references do not apply), and the success rate; u on dataset vs imagined states.
+
+Runs resume from their checkpoints (a --logdir that holds a run goes on). Small networks for the CPU
+(CPU_SETTINGS below), fast rendering, action repeat 2, 100-step episodes (200 simulator steps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+TASK = "metaworld_drawer_close"
+ENV = dict(action_repeat=2, time_limit=100, fast_render=True)
+CPU_SETTINGS = dict(batch_size=16, seq_len=16, units=200, hidden=100, log_every=50, device="cpu", threads=1, **ENV)
+OFFLINE = dict(paradigm="offline", model_heads=7, horizon=5, penalty="loglik_std")
+IMITATION = dict(paradigm="imitation", horizon=15, prefill=1000, train_every=8, demo_fraction=0.5)
+
+
+def datasets(args: argparse.Namespace) -> dict[str, str]:
+    """Collect (or find) the four datasets; returns their ids."""
+    from finetune.datasets import list_datasets
+    from finetune.datasets.cli import main as datasets_cli
+
+    ids = {name: f"bench/drawer_close-{name}-v0" for name in ("expert", "noisy", "medexp", "demos")}
+    settings = [item for key, value in ENV.items() for item in ("--set", f"{key}={value}")]
+    have = set(list_datasets())
+    plans = {"expert": ["--policy", "expert", "--episodes", str(args.expert_episodes), "--seed", "0"],
+             "noisy": ["--policy", "expert", "--action-noise", str(args.noise), "--episodes", str(args.noisy_episodes),
+                       "--seed", "1"],
+             "demos": ["--policy", "expert", "--episodes", str(args.demos), "--seed", "2"]}
+    for name, plan in plans.items():
+        if ids[name] not in have:
+            command = ["collect", "--task", TASK, "--dataset-id", ids[name], *plan, *settings, "--no-progress"]
+            if datasets_cli(command) != 0:
+                sys.exit(f"collecting {ids[name]} failed")
+    if ids["medexp"] not in have and datasets_cli(["merge", ids["noisy"], ids["expert"], "--out", ids["medexp"]]) != 0:
+        sys.exit("merging medexp failed")
+    return ids
+
+
+def references(episodes: int, seed: int) -> dict[str, tuple[float, float, float]]:
+    """(mean return, its std, success rate) of the random policy and the scripted expert, `episodes` each."""
+    from finetune.datasets.sources import ExpertPolicy, RandomPolicy
+    from finetune.envs import make_env
+    from finetune.rollout import play_episode
+
+    result = {}
+    for name in ("random", "expert"):
+        env = make_env(TASK, seed=seed, **ENV)
+        env.action_space.seed(seed)
+        policy = RandomPolicy(env.action_space) if name == "random" else ExpertPolicy(env, 0.0, seed)
+        played = [play_episode(env, policy, seed=seed if i == 0 else None) for i in range(episodes)]
+        returns = [float(p["reward"].sum(dtype=np.float64)) for p in played]
+        result[name] = (float(np.mean(returns)), float(np.std(returns)), float(np.mean([p["success"].any() for p in played])))
+        env.close()
+    return result
+
+
+def run(name: str, settings: dict, args: argparse.Namespace) -> None:
+    from finetune.config import load_config
+    from finetune.imitation import train_imitation
+    from finetune.offline import train_offline
+
+    cfg = load_config(None, {**CPU_SETTINGS, "task": TASK, "seed": args.seed, "logdir": str(args.logdir / name),
+                             "eval_episodes": args.eval_episodes, **settings})
+    started = time.perf_counter()
+    print(f"== {name}: {cfg.steps} {'updates' if cfg.paradigm == 'offline' else 'env steps'}", flush=True)
+    (train_offline if cfg.paradigm == "offline" else train_imitation)(cfg, args.pretrained, progress=not args.no_progress)
+    print(f"   {name} done in {(time.perf_counter() - started) / 60:.1f} min", flush=True)
+
+
+def last_row(path: Path) -> dict[str, str] | None:
+    if not path.exists():
+        return None
+    with path.open() as f:
+        rows = list(csv.DictReader(f))
+    return rows[-1] if rows else None
+
+
+def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[float, float, float]]) -> None:
+    low, high = refs["random"][0], refs["expert"][0]
+    print(f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; "
+          f"task {TASK}, {ENV}, seed {args.seed}")
+    print(f"{'run':<28} {'at':>8} {f'return ({args.eval_episodes} episodes)':>22} {'normalised':>11} {'success':>8} "
+          f"{'u dataset':>10} {'u imagined':>11}")
+    for name, (mean, std, success) in refs.items():
+        print(f"{name + ' policy':<28} {'':>8} {mean:>12.1f} ± {std:<7.1f} {(mean - low) / (high - low):>11.2f} "
+              f"{success:>8.0%}")
+    for name in names:
+        evaluation = last_row(args.logdir / name / "eval.csv")
+        if evaluation is None:
+            print(f"{name:<28} (no evaluation yet)")
+            continue
+        step_key = "update" if "update" in evaluation else "env_step"
+        train = last_row(args.logdir / name / "train.csv") or {}
+        mean, std = float(evaluation["return"]), float(evaluation["return_std"])
+        u = [f"{float(train[key]):>10.3g}" if train.get(key) else f"{'':>10}"
+             for key in ("penalty_u_dataset", "penalty_u_imagined")]
+        print(f"{name:<28} {step_key[0] + evaluation[step_key]:>8} {mean:>12.1f} ± {std:<7.1f} "
+              f"{(mean - low) / (high - low):>11.2f} {float(evaluation.get('success_rate', 'nan')):>8.0%} {u[0]} {u[1]}")
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--pretrained", required=True, help="export of `hauwm pretrain export` (e.g. make demo's)")
+    p.add_argument("--logdir", type=Path, default=Path("runs/bench_downstream"))
+    p.add_argument("--only", choices=["offline", "imitation"], help="run one paradigm only")
+    p.add_argument("--updates", type=int, default=1500, help="offline updates per run")
+    p.add_argument("--imitation-steps", type=int, default=20_000, help="imitation env steps")
+    p.add_argument("--lam", type=float, default=5.0, help="λ of eq. 6 for the penalised run (LOMPO: 5)")
+    p.add_argument("--frozen-weights", type=float, nargs="*", default=[], help="extra offline runs with these w > 0")
+    p.add_argument("--expert-episodes", type=int, default=20)
+    p.add_argument("--noisy-episodes", type=int, default=40)
+    p.add_argument("--noise", type=float, default=0.5, help="σ of the noisy expert's action noise")
+    p.add_argument("--demos", type=int, default=10, help="expert demonstrations for imitation (≤ 10)")
+    p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (and per reference)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--report", action="store_true", help="only print the table of what has run")
+    p.add_argument("--no-progress", action="store_true")
+    args = p.parse_args()
+    args.logdir.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("MINARI_DATASETS_PATH", str((args.logdir / "minari").resolve()))
+    import torch
+
+    torch.set_num_threads(1)
+    ids = datasets(args) if not args.report else {"medexp": "bench/drawer_close-medexp-v0",
+                                                   "demos": "bench/drawer_close-demos-v0"}
+    every = max(1, args.updates // 4)
+    offline = {"offline_lam{:g}".format(args.lam): dict(penalty_scale=args.lam),
+               "offline_lam0": dict(penalty_scale=0.0)}
+    offline.update({f"offline_lam{args.lam:g}_frozen{w:g}": dict(penalty_scale=args.lam, penalty_frozen_weight=w)
+                    for w in args.frozen_weights if w > 0})
+    plans = {} if args.only == "imitation" else {
+        name: {**OFFLINE, **extra, "dataset": ids["medexp"], "steps": args.updates, "eval_every": every,
+               "checkpoint_every": every} for name, extra in offline.items()}
+    if args.only != "offline":
+        plans["imitation"] = {**IMITATION, "demos": ids["demos"], "steps": args.imitation_steps,
+                              "eval_every": max(2000, args.imitation_steps // 5), "checkpoint_every": 2000}
+    if not args.report:
+        for name, settings in plans.items():
+            run(name, settings, args)
+    report(args, list(plans), references(args.eval_episodes, args.seed + 10_000))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

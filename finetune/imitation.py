@@ -1,0 +1,120 @@
+"""Imitation from expert demonstrations on the frozen export (paper §5.5, eq. 5, appendix F.1; VMAIL-style):
+`hauwm finetune imitate`.
+
+The online loop of finetune/train.py runs unchanged but for three hooks (`LoopHooks`): the agent, the
+replay, and per-episode reseeding. Every update:
+
+1. the world model (new stream with its decoder) is fitted on a batch whose last `demo_fraction` of
+   windows are expert demonstrations and the rest the agent's own episodes, with no reward loss: the
+   environment's reward is never learned from (it is still logged: episodes.csv, eval.csv);
+2. the posterior features of the demonstration windows, z_t = [ŝ_t; s̃_t] (the frozen encoder and streams,
+   through the world model's observe), with the actions the expert took there are the expert pairs;
+3. the actor-critic learns in imagination from every posterior state of the batch, as online, with the
+   discriminator's logit ℓ(z_t, a_t) as the reward (finetune/discriminator.py says why that form);
+4. the discriminator takes one step on those expert pairs against the imagined policy pairs.
+
+Evaluation, logs, checkpoints (which hold the discriminator and its optimiser) and resume are the online
+loop's; a run resumed from a checkpoint taken at an episode's end continues exactly.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from finetune.agent import Agent
+from finetune.config import FinetuneConfig
+from finetune.discriminator import Discriminator
+from finetune.replay import Replay
+from finetune.train import FinetuneError, LoopHooks, exclusive, load_dataset, run
+from finetune.world_model import Latent, RewardFn, Rollout
+
+
+class MixedReplay:
+    """The agent's own episodes (a Replay on disk) plus the demonstrations (in memory, never written): each
+    batch holds `batch_size − demos_per_batch` windows of the first, then `demos_per_batch` of the second."""
+
+    def __init__(self, own: Replay, demos: Replay, demos_per_batch: int):
+        self.own, self.demos, self.demos_per_batch = own, demos, demos_per_batch
+
+    def add(self, episode: dict[str, np.ndarray]) -> None:
+        self.own.add(episode)
+
+    def load(self) -> int:
+        return self.own.load()
+
+    def ready(self, length: int) -> bool:
+        return self.own.ready(length) and self.demos.ready(length)
+
+    def sample(self, batch_size: int, length: int) -> dict[str, np.ndarray]:
+        own = self.own.sample(batch_size - self.demos_per_batch, length)
+        demos = self.demos.sample(self.demos_per_batch, length)
+        return {key: np.concatenate([own[key], demos[key]]) for key in own}
+
+
+def demos_per_batch(cfg: FinetuneConfig) -> int:
+    """Demonstration windows per batch: demo_fraction of batch_size, at least one, leaving one for the agent."""
+    if cfg.batch_size < 2:
+        raise FinetuneError(f"imitation needs batch_size >= 2 (agent and demonstration windows), got {cfg.batch_size}")
+    return min(max(1, round(cfg.demo_fraction * cfg.batch_size)), cfg.batch_size - 1)
+
+
+def make_replay(cfg: FinetuneConfig, directory: Path, rng: np.random.Generator, action_dim: int) -> MixedReplay:
+    demos = Replay(None, cfg.replay_capacity, rng)
+    for episode in load_dataset(cfg.demos, cfg, action_dim, "--demos"):
+        demos.add(episode)
+    if not demos.ready(cfg.seq_len):
+        raise FinetuneError(f"--demos {cfg.demos}: no demonstration holds seq_len = {cfg.seq_len} steps; lower seq_len")
+    return MixedReplay(Replay(directory, cfg.replay_capacity, rng), demos, demos_per_batch(cfg))
+
+
+class ImitationAgent(Agent):
+    """The online agent with a discriminator's reward in imagination and no reward loss."""
+
+    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: torch.nn.Module | None = None,
+                 k1_embedding: torch.Tensor | None = None):
+        super().__init__(cfg, action_dim, frozen, k1_embedding)
+        self.discriminator = Discriminator(self.world_model.feature_dim, action_dim, cfg.units, cfg.layer_norm,
+                                           cfg.disc_lr, cfg.disc_gp_scale, cfg.grad_clip)
+        self.demos_per_batch = demos_per_batch(cfg)
+        self.expert: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's expert pairs
+        self.policy: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's imagined pairs
+
+    def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
+        """`batch`: a MixedReplay batch, demonstrations last; its rewards are dropped."""
+        metrics = super().update({key: value for key, value in batch.items() if key != "reward"})
+        metrics.update(self.discriminator.update(*self.expert, *self.policy))
+        self.expert = self.policy = None
+        return metrics
+
+    def imagined_reward(self, batch: dict[str, torch.Tensor], start: Latent) -> RewardFn:
+        demos = slice(batch["action"].shape[0] - self.demos_per_batch, None)
+        with torch.no_grad():
+            feats = self.world_model.feature(start)[demos, :-1]  # z_t of the demonstrations [B_d, L−1, F]
+        self.expert = (feats, batch["action"][demos, 1:])  # with a_t, the action taken at z_t
+        return self.discriminator_reward
+
+    def discriminator_reward(self, rollout: Rollout) -> torch.Tensor:
+        """r_t = ℓ(z_t, a_t) for t = 0..H−1; keeps the (detached) pairs for the discriminator's step."""
+        self.policy = (rollout.feats[:-1].detach(), rollout.actions.detach())
+        return self.discriminator.reward(rollout.feats[:-1], rollout.actions)
+
+    def optimizer_state_dicts(self) -> dict[str, dict]:
+        return {**super().optimizer_state_dicts(), "discriminator": self.discriminator.optimizer.state_dict()}
+
+    def load_optimizer_state_dicts(self, states: dict[str, dict]) -> None:
+        super().load_optimizer_state_dicts(states)
+        self.discriminator.optimizer.load_state_dict(states["discriminator"])
+
+
+HOOKS = LoopHooks(agent_class=ImitationAgent, make_replay=make_replay, reseed=True)
+
+
+def train_imitation(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: bool = True) -> dict[str, float]:
+    """Run (or resume) imitation in cfg.logdir until cfg.steps env steps; returns the last evaluation."""
+    if cfg.paradigm != "imitation":
+        raise FinetuneError(f"train_imitation needs paradigm 'imitation', the config has {cfg.paradigm!r}")
+    with exclusive(Path(cfg.logdir)):
+        return run(cfg, pretrained, progress, HOOKS)

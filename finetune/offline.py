@@ -1,0 +1,118 @@
+"""Offline RL on the frozen export (paper §5.5, appendix F.1; LOMPO-style): `hauwm finetune offline`.
+
+No environment step is taken except to evaluate. The replay is filled once from a dataset
+(`finetune.datasets.load_episodes`, e.g. a medexp set: medium-replay plus expert episodes), and every
+update is the online agent's: fit the new stream (with `model_heads` prior heads), decoder and reward head
+on a batch of dataset windows, then imagine `horizon` (H = 5) steps from every posterior state of that
+batch and take one actor and one critic step, with the penalised reward of eq. 6 (finetune/penalty.py)
+in place of the reward head's. Counts here are updates: `steps` updates in all, evaluation (the actor's
+mode, `eval_episodes` episodes, returns normalised by Table 4), logs and checkpoints every `eval_every`,
+`log_every` and `checkpoint_every` updates. `checkpoint.pt` holds the agent, its optimisers, both random
+states and the counters; each evaluation reseeds its env, so a resumed run continues exactly as an
+unbroken one (same batches, same weights, same evaluation episodes).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from tqdm import tqdm
+
+from finetune.agent import Agent
+from finetune.config import FinetuneConfig
+from finetune.logger import Logger
+from finetune.penalty import PenalisedReward
+from finetune.replay import Replay
+from finetune.train import (CHECKPOINT, FinetuneError, build_agent, evaluate, exclusive, export_fingerprint,
+                            load_checkpoint, load_dataset, next_multiple, resolve_device, save_checkpoint)
+from finetune.world_model import Latent
+
+
+class OfflineAgent(Agent):
+    """The online agent with eq. 6's penalised reward in imagination; logs u on dataset and imagined steps."""
+
+    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: torch.nn.Module | None = None,
+                 k1_embedding: torch.Tensor | None = None):
+        super().__init__(cfg, action_dim, frozen, k1_embedding)
+        self.penalty = PenalisedReward(self.world_model, cfg.penalty, cfg.penalty_scale, cfg.penalty_frozen_weight)
+
+    def imagined_reward(self, batch: dict[str, torch.Tensor], start: Latent) -> PenalisedReward:
+        self.penalty.measure_dataset(start, batch["action"])
+        return self.penalty
+
+    def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
+        metrics = super().update(batch)
+        metrics.update(self.penalty.metrics)
+        return metrics
+
+
+def train_offline(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: bool = True) -> dict[str, float]:
+    """Run (or resume) offline RL in cfg.logdir until cfg.steps updates; returns the last evaluation."""
+    if cfg.paradigm != "offline":
+        raise FinetuneError(f"train_offline needs paradigm 'offline', the config has {cfg.paradigm!r}")
+    with exclusive(Path(cfg.logdir)):
+        return run_offline(cfg, pretrained, progress)
+
+
+def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> dict[str, float]:
+    from finetune.envs import make_env
+
+    logdir = Path(cfg.logdir)
+    device = resolve_device(cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    try:
+        eval_env = make_env(cfg.task, seed=cfg.seed + 10_000, action_repeat=cfg.action_repeat,
+                            fast_render=cfg.fast_render, time_limit=cfg.time_limit)
+    except ValueError as error:  # an unknown task name
+        raise FinetuneError(f"task {cfg.task!r}: {error}") from None
+    action_dim = eval_env.action_space.shape[0]
+    rng = np.random.default_rng(cfg.seed)
+    replay = Replay(None, cfg.replay_capacity, rng)
+    for episode in load_dataset(cfg.dataset, cfg, action_dim, "--dataset"):
+        replay.add(episode)
+    if not replay.ready(cfg.seq_len):
+        raise FinetuneError(f"--dataset {cfg.dataset}: no episode holds seq_len = {cfg.seq_len} steps; lower seq_len")
+    agent = build_agent(cfg, action_dim, pretrained, device, OfflineAgent)
+    fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
+    counters = {"updates": 0, "next_eval": cfg.eval_every, "next_checkpoint": cfg.checkpoint_every,
+                "next_log": cfg.log_every}
+    checkpoint = logdir / CHECKPOINT
+    if checkpoint.exists():
+        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng)
+    (logdir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    logger = Logger(logdir, step_name="update")
+    last_eval: dict[str, float] = {}
+    bar = tqdm(total=cfg.steps, initial=counters["updates"], unit=" update", desc=f"offline {cfg.task}",
+               disable=not progress, dynamic_ncols=True)
+    window = {"time": time.perf_counter(), "updates": counters["updates"], "metrics": []}
+    while counters["updates"] < cfg.steps:
+        window["metrics"].append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
+        counters["updates"] += 1
+        bar.update(1)
+        updates = counters["updates"]
+        if updates >= counters["next_log"] or updates >= cfg.steps:
+            now = time.perf_counter()
+            metrics = {k: float(np.mean([m[k] for m in window["metrics"]])) for k in window["metrics"][0]}
+            metrics["updates_per_s"] = (updates - window["updates"]) / (now - window["time"])
+            logger.write("train", updates, metrics)
+            bar.set_postfix(model_loss=f"{metrics['model_loss']:.1f}", u=f"{metrics['penalty_u_imagined']:.3g}")
+            window = {"time": now, "updates": updates, "metrics": []}
+            counters["next_log"] = next_multiple(updates, cfg.log_every)
+        if updates >= counters["next_eval"] or updates >= cfg.steps:
+            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=cfg.seed + 10_000 + updates)
+            logger.write("eval", updates, last_eval)
+            bar.write(f"eval at {updates} updates: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
+            counters["next_eval"] = next_multiple(updates, cfg.eval_every)
+        if updates >= counters["next_checkpoint"] or updates >= cfg.steps:
+            counters["next_checkpoint"] = next_multiple(updates, cfg.checkpoint_every)
+            save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
+    bar.close()
+    logger.close()
+    return last_eval

@@ -1,0 +1,56 @@
+"""`hauwm finetune offline|imitate`: dispatch, the data flags, and clear errors for configs of another paradigm."""
+
+from __future__ import annotations
+
+import pytest
+
+import finetune.imitation
+import finetune.offline
+import finetune.train
+from finetune.cli import main
+
+
+@pytest.fixture
+def runners(monkeypatch):
+    """Record which paradigm's entry point the CLI calls, with which settings, instead of training."""
+    calls = []
+
+    def fake(name):
+        def run(cfg, pretrained, progress):
+            calls.append((name, cfg))
+            return {"return": 1.0}
+        return run
+
+    monkeypatch.setattr(finetune.offline, "train_offline", fake("offline"))
+    monkeypatch.setattr(finetune.imitation, "train_imitation", fake("imitation"))
+    monkeypatch.setattr(finetune.train, "train", fake("online"))
+    return calls
+
+
+def test_each_subcommand_runs_its_paradigm_with_its_data_flag(runners, capsys):
+    assert main(["offline", "--config", "configs/offline/demo.yaml", "--dataset", "medexp", "--steps", "7"]) == 0
+    assert main(["imitate", "--config", "configs/imitation/demo.yaml", "--demos", "expert"]) == 0
+    assert main(["--config", "configs/finetune/demo.yaml"]) == 0
+    (offline, cfg_offline), (imitation, cfg_imitation), (online, cfg_online) = runners
+    assert (offline, cfg_offline.dataset, cfg_offline.steps) == ("offline", "medexp", 7)
+    assert (imitation, cfg_imitation.demos) == ("imitation", "expert")
+    assert (online, cfg_online.paradigm) == ("online", "online")
+    out = capsys.readouterr().out
+    assert "(hauwm, offline)" in out and "(hauwm, imitation)" in out and "finished dmc_cartpole_swingup (hauwm)" in out
+
+
+def test_a_config_of_another_paradigm_is_refused_with_the_right_command(runners, capsys):
+    assert main(["--config", "configs/offline/demo.yaml"]) == 2
+    assert "run `hauwm finetune offline --config configs/offline/demo.yaml" in capsys.readouterr().err
+    assert main(["imitate", "--config", "configs/offline/demo.yaml", "--demos", "x"]) == 2
+    assert "a config from configs/imitation/" in capsys.readouterr().err
+    assert main(["offline", "--config", "configs/offline/demo.yaml", "--set", "model_heads=1"]) == 2
+    assert "hauwm finetune offline: error: penalty 'loglik_std'" in capsys.readouterr().err
+    assert not runners
+
+
+def test_a_missing_dataset_is_a_clear_error(export_dir, tmp_path, capsys):
+    args = ["offline", "--config", "configs/offline/demo.yaml", "--pretrained", str(export_dir), "--logdir",
+            str(tmp_path / "run"), "--device", "cpu", "--no-progress", "--set", "units=32", "--set", "hidden=24"]
+    assert main(args) == 2
+    assert "--dataset ID is needed" in capsys.readouterr().err

@@ -1,0 +1,114 @@
+"""Imitation (eq. 5): the discriminator, and short runs that learn from no env reward and resume exactly."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+import torch
+
+from finetune.config import ConfigError
+from finetune.discriminator import Discriminator
+from finetune.imitation import ImitationAgent, train_imitation
+from finetune.train import CHECKPOINT, FinetuneError, build_agent
+
+
+def test_discriminator_separates_expert_latents_from_random_ones_after_a_few_steps():
+    torch.manual_seed(0)
+    disc = Discriminator(feat_dim=16, action_dim=2, units=32, lr=3e-3)
+    expert_feat, expert_action = 1.5 + 0.3 * torch.randn(256, 16), torch.full((256, 2), 0.5)
+
+    def random_pairs():
+        return torch.randn(256, 16), torch.rand(256, 2) * 2 - 1
+
+    first = disc.update(expert_feat, expert_action, *random_pairs())
+    for _ in range(40):
+        last = disc.update(expert_feat, expert_action, *random_pairs())
+    assert first["disc_accuracy"] < 0.8 and last["disc_loss"] < 0.5 * first["disc_loss"] and last["disc_accuracy"] > 0.95
+    with torch.no_grad():
+        assert disc.logit(expert_feat, expert_action).mean() > 0 > disc.logit(*random_pairs()).mean()
+
+
+def test_the_reward_is_the_logit_with_gradients_to_the_pair_and_none_to_the_discriminator():
+    disc = Discriminator(feat_dim=4, action_dim=2, units=8)
+    feat, action = torch.randn(5, 4, requires_grad=True), torch.randn(5, 2, requires_grad=True)
+    reward = disc.reward(feat, action)
+    d = torch.sigmoid(disc.logit(feat, action))
+    assert torch.allclose(reward, torch.log(d) - torch.log1p(-d), atol=1e-5)
+    reward.sum().backward()
+    assert action.grad.abs().sum() > 0 and feat.grad.abs().sum() > 0
+    assert all(p.grad is None for p in disc.parameters())
+
+
+def test_the_gradient_penalty_is_taken_on_the_input():
+    """A discriminator whose logit is linear in its input with slope norm g pays (g − 1)² whatever the data."""
+    disc = Discriminator(feat_dim=3, action_dim=1, units=4, layer_norm=False)
+    with torch.no_grad():
+        for module in disc.net:
+            if isinstance(module, torch.nn.Linear):
+                module.weight.zero_()
+                module.bias.zero_()
+        disc.net[0].weight[0] = torch.tensor([3.0, 0.0, 4.0, 0.0])  # unit 0 = 3 x_0 + 4 x_2 (|slope| 5)
+        disc.net[2].weight[0, 0] = 1.0  # passed on by the second hidden layer and the output
+        disc.net[-1].weight[0, 0] = 1.0
+    big = 10 + torch.rand(8, 3)  # ELU is the identity for positive inputs: logit = 3 x_0 + 4 x_2, slope norm 5
+    metrics = disc.update(big, torch.ones(8, 1), big + 1, torch.ones(8, 1))
+    assert metrics["disc_penalty"] == pytest.approx(16.0, rel=1e-4)
+
+
+def imitation_config(tiny_config, logdir, steps, **extra):
+    values = dict(paradigm="imitation", task="metaworld_drawer_close", demos="test/two-demos-v0", action_repeat=1,
+                  time_limit=8, fast_render=True, steps=steps, prefill=8, train_every=4, eval_every=16,
+                  eval_episodes=1, log_every=8, checkpoint_every=16, horizon=3, logdir=str(logdir))
+    values.update(extra)
+    return tiny_config(**values)
+
+
+def rows(path):
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture
+def two_demos(minari_dataset, random_episodes):
+    return minari_dataset("test/two-demos-v0", random_episodes(2, 12, 4, seed=1), "metaworld_drawer_close")
+
+
+def test_imitation_run_learns_from_no_env_reward_and_a_resumed_run_continues_exactly(
+        export_dir, tiny_config, tmp_path, two_demos):
+    whole = train_imitation(imitation_config(tiny_config, tmp_path / "whole", 32), export_dir, progress=False)
+    assert set(whole) >= {"return", "normalised_return", "success_rate"}
+    train_imitation(imitation_config(tiny_config, tmp_path / "halves", 16), export_dir, progress=False)
+    assert train_imitation(imitation_config(tiny_config, tmp_path / "halves", 32), export_dir, progress=False) == whole
+
+    first = torch.load(tmp_path / "whole" / CHECKPOINT, weights_only=True)
+    second = torch.load(tmp_path / "halves" / CHECKPOINT, weights_only=True)
+    assert first["counters"] == second["counters"] and first["counters"]["updates"] == 6
+    assert any(key.startswith("discriminator.") for key in first["agent"])
+    assert "discriminator" in first["optimizers"]
+    assert all(torch.equal(value, second["agent"][key]) for key, value in first["agent"].items())
+    assert rows(tmp_path / "whole" / "eval.csv") == rows(tmp_path / "halves" / "eval.csv")
+    episodes = rows(tmp_path / "whole" / "episodes.csv")
+    assert len(episodes) == 4 and all("return" in row for row in episodes)  # the env return is logged
+    train = rows(tmp_path / "whole" / "train.csv")
+    assert float(train[-1]["reward_nll"]) == 0.0 and 0 <= float(train[-1]["disc_expert_prob"]) <= 1
+
+    # no env reward is learned from: the reward head is as initialised (a fresh agent of the same seed)
+    cfg = imitation_config(tiny_config, tmp_path / "fresh", 32)
+    torch.manual_seed(cfg.seed)
+    fresh = build_agent(cfg, 4, export_dir, torch.device("cpu"), ImitationAgent).trainable_state_dict()
+    reward_head = [key for key in fresh if key.startswith("world_model.reward.")]
+    assert reward_head and all(torch.equal(fresh[key], first["agent"][key]) for key in reward_head)
+    decoder = [key for key in fresh if key.startswith("world_model.decoder.")]
+    assert not all(torch.equal(fresh[key], first["agent"][key]) for key in decoder)  # the rest did learn
+
+
+def test_bad_imitation_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_demos):
+    with pytest.raises(ConfigError, match="demo_fraction must lie strictly between 0 and 1"):
+        imitation_config(tiny_config, tmp_path, 16, demo_fraction=1.0)
+    with pytest.raises(FinetuneError, match="--demos ID is needed"):
+        train_imitation(imitation_config(tiny_config, tmp_path / "a", 16, demos=None), export_dir, progress=False)
+    with pytest.raises(FinetuneError, match="no demonstration holds seq_len = 20"):
+        train_imitation(imitation_config(tiny_config, tmp_path / "b", 16, seq_len=20), export_dir, progress=False)
+    with pytest.raises(FinetuneError, match="paradigm 'imitation'"):
+        train_imitation(tiny_config(logdir=str(tmp_path / "c")), export_dir, progress=False)

@@ -1,0 +1,151 @@
+"""Offline RL (eq. 6): the uncertainty penalty, and short runs that write eval.csv and resume exactly."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+from finetune.config import ConfigError
+from finetune.offline import train_offline
+from finetune.penalty import uncertainty
+from finetune.train import CHECKPOINT, FinetuneError
+
+KINDS = ("loglik_std", "max_std", "mean_disagreement")
+
+
+def heads(spread: float, std_spread: float = 0.0, m: int = 5, n: int = 64, s: int = 6):
+    """M prior heads around one prediction: means [M, N, S] spread by `spread`, stds by `std_spread`."""
+    generator = torch.Generator().manual_seed(0)
+    base, offsets = torch.randn(n, s, generator=generator), torch.randn(m, n, s, generator=generator)
+    std = 0.5 + std_spread * torch.rand(m, n, s, generator=generator)
+    return base + spread * offsets, std, base + 0.5 * torch.randn(n, s, generator=generator)
+
+
+@pytest.mark.parametrize("kind", ["loglik_std", "mean_disagreement"])
+def test_disagreement_penalties_are_zero_when_heads_agree_and_grow_with_spread(kind):
+    values = [uncertainty(kind, *heads(spread)).mean().item() for spread in (0.0, 0.1, 0.5, 2.0)]
+    assert values[0] == pytest.approx(0.0, abs=1e-5)
+    assert values[1] < values[2] < values[3]
+
+
+def test_max_std_is_the_common_std_norm_when_heads_agree_and_grows_with_their_std_spread():
+    mean, std, sample = heads(0.0)
+    assert torch.allclose(uncertainty("max_std", mean, std, sample), std[0].norm(dim=-1))
+    values = [uncertainty("max_std", *heads(0.0, std_spread)).mean().item() for std_spread in (0.0, 0.2, 1.0)]
+    assert values[0] < values[1] < values[2]
+
+
+def test_every_penalty_has_a_gradient_to_the_heads_means_except_max_std():
+    for kind in KINDS:
+        mean, std, sample = heads(0.5)
+        mean.requires_grad_(True)
+        std.requires_grad_(True)
+        grad = torch.autograd.grad(uncertainty(kind, mean, std, sample).sum(), mean, allow_unused=True)[0]
+        assert (grad is not None and grad.abs().sum() > 0) == (kind != "max_std"), kind
+
+
+def offline_config(tiny_config, logdir, steps, **extra):
+    values = dict(paradigm="offline", task="metaworld_drawer_close", dataset="test/two-episodes-v0", action_repeat=1,
+                  model_heads=3, horizon=3, time_limit=6, fast_render=True, steps=steps, eval_every=2,
+                  eval_episodes=1, log_every=1, checkpoint_every=2, logdir=str(logdir))
+    values.update(extra)
+    return tiny_config(**values)
+
+
+def rows(path):
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture
+def two_episodes(minari_dataset, random_episodes):
+    return minari_dataset("test/two-episodes-v0", random_episodes(2, 12, 4), "metaworld_drawer_close")
+
+
+def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir, tiny_config, tmp_path, two_episodes,
+                                                                     minari_dataset, random_episodes):
+    whole = train_offline(offline_config(tiny_config, tmp_path / "whole", 4), export_dir, progress=False)
+    assert set(whole) >= {"return", "normalised_return", "success_rate"}
+    train_offline(offline_config(tiny_config, tmp_path / "halves", 2), export_dir, progress=False)
+    assert torch.load(tmp_path / "halves" / CHECKPOINT, weights_only=True)["counters"]["updates"] == 2
+    assert train_offline(offline_config(tiny_config, tmp_path / "halves", 4), export_dir, progress=False) == whole
+
+    first = torch.load(tmp_path / "whole" / CHECKPOINT, weights_only=True)
+    second = torch.load(tmp_path / "halves" / CHECKPOINT, weights_only=True)
+    assert first["counters"] == second["counters"] and first["counters"]["updates"] == 4
+    assert all(torch.equal(value, second["agent"][key]) for key, value in first["agent"].items())
+    assert rows(tmp_path / "whole" / "eval.csv") == rows(tmp_path / "halves" / "eval.csv")
+    assert [int(r["update"]) for r in rows(tmp_path / "whole" / "eval.csv")] == [2, 4]
+    train = rows(tmp_path / "whole" / "train.csv")
+    assert len(train) == 4
+    for key in ("penalty_u_dataset", "penalty_u_imagined", "frozen_disagreement_dataset",
+                "frozen_disagreement_imagined", "imagined_model_reward"):
+        assert np.isfinite(float(train[-1][key])), key
+
+    minari_dataset("test/other-v0", random_episodes(2, 12, 4, seed=5), "metaworld_drawer_close")
+    with pytest.raises(FinetuneError, match="dataset='test/two-episodes-v0'"):  # a run directory of another dataset
+        train_offline(offline_config(tiny_config, tmp_path / "whole", 6, dataset="test/other-v0"), export_dir,
+                      progress=False)
+
+
+def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_episodes,
+                                                            minari_dataset, random_episodes):
+    with pytest.raises(ConfigError, match="model_heads >= 2"):
+        offline_config(tiny_config, tmp_path, 2, model_heads=1)
+    with pytest.raises(ConfigError, match="penalty must be one of"):
+        offline_config(tiny_config, tmp_path, 2, penalty="variance")
+    with pytest.raises(ConfigError, match="scratch agent has none"):
+        offline_config(tiny_config, tmp_path, 2, agent="scratch", penalty_frozen_weight=1.0)
+    with pytest.raises(FinetuneError, match="--dataset ID is needed"):
+        train_offline(offline_config(tiny_config, tmp_path / "a", 2, dataset=None), export_dir, progress=False)
+    with pytest.raises(FinetuneError, match="--dataset test/nope-v0: .*not found under MINARI_DATASETS_PATH"):
+        train_offline(offline_config(tiny_config, tmp_path / "b", 2, dataset="test/nope-v0"), export_dir, progress=False)
+    minari_dataset("test/repeat2-v0", random_episodes(2, 12, 4), "metaworld_drawer_close", action_repeat=2)
+    with pytest.raises(FinetuneError, match="collected with action_repeat=2, this run has action_repeat=1"):
+        train_offline(offline_config(tiny_config, tmp_path / "r", 2, dataset="test/repeat2-v0"), export_dir,
+                      progress=False)
+    with pytest.raises(FinetuneError, match="no episode holds seq_len = 20"):
+        train_offline(offline_config(tiny_config, tmp_path / "c", 2, seq_len=20), export_dir, progress=False)
+
+
+def test_the_frozen_disagreement_term_gives_the_actor_no_gradient(export_dir, tiny_config):
+    """The frozen stream imagines without the actions: adding its disagreement to u changes the rewards but
+    not their gradient with respect to the actor (dynamics backprop)."""
+    from finetune.offline import OfflineAgent
+    from finetune.train import build_agent
+
+    cfg = tiny_config(paradigm="offline", model_heads=3, horizon=3, penalty_frozen_weight=10.0)
+    agent = build_agent(cfg, 2, export_dir, torch.device("cpu"), OfflineAgent)
+    generator = np.random.default_rng(0)
+    start, _ = agent.world_model.observe(torch.as_tensor(generator.integers(0, 256, (2, 4, 3, 64, 64), dtype=np.uint8)),
+                                         torch.as_tensor(generator.uniform(-1, 1, (2, 4, 2)).astype(np.float32)))
+    start = type(start)(*(type(s)(s.deter.detach(), s.stoch.detach()) for s in start))
+    results = []
+    for weight in (0.0, 10.0):
+        agent.penalty.frozen_weight = weight
+        torch.manual_seed(1)
+        rewards = agent.world_model.imagine(start, agent.behavior.actor, 3, agent.penalty)[1]
+        grads = torch.autograd.grad(rewards.sum(), list(agent.behavior.actor.parameters()))
+        results.append((rewards.detach(), grads))
+    (rewards_without, grads_without), (rewards_with, grads_with) = results
+    assert (rewards_with < rewards_without - 1e-6).all()  # the term is there
+    assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(grads_without, grads_with))
+
+
+@pytest.mark.parametrize("rule", ["random", "mean"])
+def test_imagination_draws_the_next_latent_from_one_head_per_trajectory_or_from_their_mean(tiny_config, rule):
+    from finetune.world_model import WorldModel
+
+    world_model = WorldModel(tiny_config(agent="scratch", model_heads=4, imagine_heads=rule, deter=8, stoch=3), 2,
+                             None, None)
+    mean = torch.arange(4.0)[:, None, None].expand(4, 50, 3).clone()  # head i predicts i everywhere
+    sample = world_model.next_stoch(mean, torch.full_like(mean, 1e-6))  # [50, 3]
+    if rule == "mean":
+        assert torch.allclose(sample, torch.full_like(sample, 1.5), atol=1e-4)
+    else:
+        heads = sample[:, 0].round()
+        assert torch.allclose(sample, heads[:, None].expand_as(sample), atol=1e-4)  # one head per trajectory
+        assert len(heads.unique()) > 1  # and not the same head for all
