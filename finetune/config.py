@@ -22,6 +22,10 @@ class FinetuneConfig:
     logdir: str = "runs/finetune"
     device: str = "auto"  # "auto" (cuda when available), "cpu" or "cuda"
     threads: int = 0  # torch CPU threads, 0 = torch's default
+    # speed (docs/finetuning.md, "Speed"); none of these changes what is learned beyond rounding
+    compile: str = "auto"  # torch.compile of update and acting: "auto" (reduce-overhead on CUDA, off on CPU), "off", "default", "reduce-overhead"
+    conv_bf16: bool = False  # bf16 autocast in the convolutional encoder and decoder
+    num_envs: int = 1  # training envs; more than 1 steps them in worker processes while the learner trains
     # environment
     steps: int = 1_000_000  # env steps (frames), Table 3: DMC 1M, Meta-World and RoboDesk 250k
     action_repeat: int = 2
@@ -62,6 +66,13 @@ class FinetuneConfig:
     layer_norm: bool = True  # LayerNorm before each ELU of actor and critic; not in Table 3 (docs/finetuning.md)
 
 
+# settings that take one of a few words
+CHOICES: dict[str, tuple[str, ...]] = {
+    "agent": ("hauwm", "scratch"),  # "hauwm": dual-stream on the frozen export; "scratch": DreamerV2-like baseline
+    "compile": ("auto", "off", "default", "reduce-overhead"),
+}
+
+
 class ConfigError(ValueError):
     pass
 
@@ -81,8 +92,11 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise ConfigError(f"unknown setting(s) {unknown} in {path or 'overrides'}; known: {sorted(fields)}")
-    if values.get("agent", "hauwm") not in ("hauwm", "scratch"):
-        raise ConfigError(f"agent must be 'hauwm' or 'scratch', got {values['agent']!r}")
+    if values.get("compile") is False:  # YAML reads a bare `off` as false
+        values["compile"] = "off"
+    for name, choices in CHOICES.items():
+        if name in values and values[name] not in choices:
+            raise ConfigError(f"setting {name} must be one of {', '.join(choices)}; got {values[name]!r}")
     for name, value in values.items():
         default = fields[name].default
         if isinstance(default, bool) and not isinstance(value, bool):
@@ -93,6 +107,8 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
             except ValueError:
                 raise ConfigError(f"setting {name} must be a number, got {value!r}") from None
             values[name] = int(number) if isinstance(default, int) else number
+    if values.get("num_envs", 1) < 1:
+        raise ConfigError(f"setting num_envs must be at least 1, got {values['num_envs']}")
     return FinetuneConfig(**values)
 
 
