@@ -1,7 +1,9 @@
 """The online fine-tuning loop (paper Algorithm 1, phase 2): act → replay → update → evaluate → checkpoint.
 
-Counts are environment steps (frames). The first `prefill` steps take uniformly random actions; after
-that one gradient update (world model, then actor and critic) runs every `train_every` env steps.
+Counts are environment steps (frames), summed over the `num_envs` training envs. The first `prefill`
+steps take uniformly random actions; after that one gradient update (world model, then actor and critic)
+runs every `train_every` env steps. With several envs (worker processes, finetune/envs/vector.py) the
+envs act as one batch and the updates due run while the workers step; each env fills its own episodes.
 Every `eval_every` env steps the policy's mode plays `eval_episodes` episodes on a separately seeded
 environment; returns are logged raw and normalised with the paper's Table 4 references where the task
 has them. `checkpoint.pt` in the run directory holds everything but the frozen export and the replay

@@ -38,3 +38,14 @@ def test_overrides_are_typed_and_unknown_keys_rejected(tmp_path):
         load_config(tmp_path / "nope.yaml")
     with pytest.raises(ConfigError, match="agent must be"):
         load_config(None, {"agent": "apv"})
+
+
+def test_speed_settings_are_checked():
+    assert load_config(None, dict([parse_override("compile=off")])).compile == "off"  # YAML reads off as false
+    assert load_config(None, {"compile": "reduce-overhead", "num_envs": 4}).num_envs == 4
+    with pytest.raises(ConfigError, match="compile must be one of auto, off, default, reduce-overhead"):
+        load_config(None, {"compile": "max-autotune"})
+    with pytest.raises(ConfigError, match="num_envs must be at least 1"):
+        load_config(None, {"num_envs": 0})
+    with pytest.raises(ConfigError, match="conv_bf16 must be true or false"):
+        load_config(None, {"conv_bf16": "yes"})
