@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch._inductor.config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -142,6 +143,8 @@ def main() -> None:
     if cuda and not torch.cuda.is_available():
         parser.error("--device cuda: no CUDA device is visible")
     torch.set_num_threads(args.threads)
+    if not cuda:  # inductor's pool of compile workers is slower than compiling in-process on a few shared cores
+        torch._inductor.config.compile_threads = 1
     setting = list(SETTINGS)[0 if cuda or args.paper else 1]
     export_sizes, agent_cfg = SETTINGS[setting]
     compiled = args.compile or ("reduce-overhead" if cuda else "default")
