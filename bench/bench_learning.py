@@ -5,6 +5,7 @@
     python bench/bench_learning.py --minutes 2 --logdir /tmp/quick   # a smoke run
     python bench/bench_learning.py --set model_lr=6e-4 --set actor_lr=2e-4 --set critic_lr=2e-4
     python bench/bench_learning.py --plot runs/a runs/b --out curve.png  # redraw finished runs together
+    python bench/bench_learning.py --gpu --agent hauwm --pretrained DIR  # cheetah run, Table 3 sizes, 10 GPU min
 
 Runs `finetune.train.train` in chunks of `--chunk` env steps (each chunk resumes the last from its
 checkpoint; a --logdir that holds a run goes on from it) until the wall-clock budget is spent, with small
@@ -12,7 +13,9 @@ networks that fit a CPU. Then it plays random-policy episodes for the baseline, 
 returns, a summary per run (best, last, the evals from 20k env steps against the random policy) and the
 critic's loss every 10k env steps, and draws eval return against env steps (`learning_curve.png` in the
 log directory; `--plot` draws several finished runs of one task in one figure). Settings and machine are
-printed with the figures.
+printed with the figures. `--gpu`: the paper's sizes on one CUDA device instead (compiled updates, four
+envs in worker processes, cheetah run by default), in one chunk of 50,000 env steps (each chunk would
+compile the update anew).
 """
 
 from __future__ import annotations
@@ -41,6 +44,9 @@ CPU_SETTINGS = dict(
     stoch=20, encoder_width=8, eval_every=2000, eval_episodes=3, log_every=500, checkpoint_every=2000,
     fast_render=True, device="cpu", threads=1,
 )
+# Table 3's sizes and schedule (finetune/config.py defaults) on one GPU: CUDA graphs, envs rendered with EGL
+GPU_SETTINGS = dict(device="cuda", compile="auto", num_envs=4, eval_every=10_000, eval_episodes=5, log_every=1000,
+                    checkpoint_every=10_000)
 
 
 def play_episode(env, rng: np.random.Generator, constant: float | None = None) -> dict[str, np.ndarray]:
@@ -135,17 +141,19 @@ def report(logdirs: list[Path], out: Path, minutes: float | None = None) -> None
         print(summarize(d.name, points, baseline))
         print(f"  critic loss (train.csv) {critic_losses(d)}")
     budget = f", {minutes:.0f} min" if minutes is not None else ""
-    plot_curves(curves, baseline, f"{task}, shared CPU{budget}", out)
+    where = "one GPU" if configs[0].device.startswith("cuda") else "shared CPU"
+    plot_curves(curves, baseline, f"{task}, {where}{budget}", out)
     print(f"curve: {out}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--task", default="dmc_cartpole_swingup")
+    parser.add_argument("--gpu", action="store_true", help="Table 3 sizes on a CUDA device (GPU_SETTINGS)")
+    parser.add_argument("--task", help="default: dmc_cartpole_swingup (CPU), dmc_cheetah_run (--gpu)")
     parser.add_argument("--agent", default="scratch", choices=["scratch", "hauwm"])
     parser.add_argument("--pretrained", help="export directory (agent hauwm)")
-    parser.add_argument("--minutes", type=float, default=25.0, help="wall-clock budget for training")
-    parser.add_argument("--chunk", type=int, default=2000, help="env steps per resumed chunk")
+    parser.add_argument("--minutes", type=float, help="wall-clock budget for training (default 25; --gpu 10)")
+    parser.add_argument("--chunk", type=int, help="env steps per resumed chunk (default 2000; --gpu 50000)")
     parser.add_argument("--logdir", default="runs/bench_learning")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting")
@@ -156,13 +164,17 @@ def main() -> None:
         report(args.plot, args.out or args.plot[0] / "learning_curve.png")
         return
 
-    settings = {**CPU_SETTINGS, **dict(parse_override(text) for text in args.set)}
+    args.task = args.task or ("dmc_cheetah_run" if args.gpu else "dmc_cartpole_swingup")
+    args.minutes = args.minutes or (10.0 if args.gpu else 25.0)
+    args.chunk = args.chunk or (50_000 if args.gpu else 2000)
+    settings = {**(GPU_SETTINGS if args.gpu else CPU_SETTINGS), **dict(parse_override(text) for text in args.set)}
     logdir = Path(args.logdir)
     done = load_config(logdir / "config.yaml").steps if (logdir / "config.yaml").exists() else 0  # a run to go on with
     cfg = load_config(None, dict(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir, steps=done, **settings))
     if args.agent == "hauwm":  # the new stream takes the export's sizes
         cfg = dataclasses.replace(cfg, deter=None, stoch=None)
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs (shared), torch {torch.__version__}, 1 thread")
+    gpu = torch.cuda.get_device_name() if cfg.device.startswith("cuda") and torch.cuda.is_available() else "CPU"
+    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs (shared), torch {torch.__version__}, {gpu}")
     print(f"task {args.task}, agent {args.agent}, budget {args.minutes} min, "
           f"settings { {key: getattr(cfg, key) for key in (*settings, 'layer_norm')} }", flush=True)
     start = time.perf_counter()

@@ -146,34 +146,42 @@ class ActorCritic(nn.Module):
         self.horizon, self.gamma, self.lam = horizon, gamma, lam
         self.entropy_scale, self.target_fraction, self.grad_clip = entropy_scale, target_fraction, grad_clip
 
-    def update(self, imagine: Imagine, start: object, reward: Callable | None = None) -> dict[str, float]:
+    def update(self, imagine: Imagine, start: object, reward: Callable | None = None) -> dict[str, torch.Tensor]:
         """One actor and one critic step on trajectories imagined from the posterior states `start`, with the
         rewards of `reward` (None: the world model's reward head; offline RL and imitation pass their own)."""
+        return self.step(*self.losses(imagine, start, reward))
+
+    def losses(self, imagine: Imagine, start: object, reward: Callable | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Imagine from `start` → (actor loss, critic loss, the imagined features [H+1, N, F] detached, metrics).
+
+        The two losses share no parameters (the critic reads detached features and returns), so one
+        backward pass through both gives each network its own gradient; the agent may run this compiled.
+        """
         given = {} if reward is None else {"reward": reward}
         feats, rewards, entropy = imagine(start, self.actor, self.horizon, **given)  # [H+1,N,F], [H,N], [H,N]
         values = self.target_critic(feats)  # [H+1, N]; gradients reach feats (dynamics backprop)
         returns = lambda_return(rewards, values, self.gamma, self.lam)  # [H, N]
         weights = self.gamma ** torch.arange(self.horizon, dtype=returns.dtype, device=returns.device)[:, None]
         actor_loss = -(weights * (returns + self.entropy_scale * entropy)).mean()
-        self.actor_opt.zero_grad(set_to_none=True)
-        actor_loss.backward()
-        actor_norm = nn.utils.clip_grad_norm_(self.actor.parameters(), self.grad_clip)
-        self.actor_opt.step()
-
         value = self.critic(feats[:-1].detach())  # [H, N]
         critic_loss = (weights * 0.5 * (value - returns.detach()) ** 2).mean()
-        self.critic_opt.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        critic_norm = nn.utils.clip_grad_norm_(self.critic.parameters(), self.grad_clip)
-        self.critic_opt.step()
+        metrics = {"actor_loss": actor_loss, "critic_loss": critic_loss, "imagined_reward": rewards.mean(),
+                   "imagined_return": returns.mean(), "actor_entropy": entropy.mean()}
+        return actor_loss, critic_loss, feats.detach(), {name: value.detach() for name, value in metrics.items()}
 
+    def step(self, actor_loss: torch.Tensor, critic_loss: torch.Tensor, feats: torch.Tensor,
+             metrics: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Backward through both losses, clip, one Adam step each, then the slow target follows the critic."""
+        self.actor_opt.zero_grad(set_to_none=True)
+        self.critic_opt.zero_grad(set_to_none=True)
+        torch.autograd.backward([actor_loss, critic_loss])
+        metrics["actor_grad_norm"] = nn.utils.clip_grad_norm_(self.actor.parameters(), self.grad_clip)
+        self.actor_opt.step()
+        metrics["critic_grad_norm"] = nn.utils.clip_grad_norm_(self.critic.parameters(), self.grad_clip)
+        self.critic_opt.step()
         with torch.no_grad():
             for target, online in zip(self.target_critic.parameters(), self.critic.parameters()):
                 target.lerp_(online, self.target_fraction)
-            saturated = (self.actor(feats[:-1]).loc.abs() > SATURATED).float().mean()
-        return {
-            "actor_loss": actor_loss.item(), "critic_loss": critic_loss.item(),
-            "imagined_reward": rewards.mean().item(), "imagined_return": returns.mean().item(),
-            "actor_entropy": entropy.mean().item(), "actor_grad_norm": actor_norm.item(),
-            "critic_grad_norm": critic_norm.item(), "actor_saturated": saturated.item(),
-        }
+            metrics["actor_saturated"] = (self.actor(feats[:-1]).loc.abs() > SATURATED).float().mean()
+        return metrics

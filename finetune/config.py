@@ -15,6 +15,14 @@ import yaml
 
 PARADIGMS = ("online", "offline", "imitation")
 PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
+# settings that take one of a few words
+CHOICES: dict[str, tuple[str, ...]] = {
+    "agent": ("hauwm", "scratch"),
+    "paradigm": PARADIGMS,
+    "compile": ("auto", "off", "default", "reduce-overhead"),
+    "imagine_heads": ("random", "mean"),
+    "penalty": PENALTIES,
+}
 
 
 class ConfigError(ValueError):
@@ -30,6 +38,10 @@ class FinetuneConfig:
     logdir: str = "runs/finetune"
     device: str = "auto"  # "auto" (cuda when available), "cpu" or "cuda"
     threads: int = 0  # torch CPU threads, 0 = torch's default
+    # speed (docs/finetuning.md, "Speed"); none of these changes what is learned beyond rounding
+    compile: str = "auto"  # torch.compile of update and acting: "auto" (reduce-overhead on CUDA, off on CPU), "off", "default", "reduce-overhead"
+    conv_bf16: bool = False  # bf16 autocast in the convolutional encoder and decoder
+    num_envs: int = 1  # training envs; more than 1 steps them in worker processes while the learner trains
     # environment
     steps: int = 1_000_000  # env steps (frames), Table 3: DMC 1M, Meta-World and RoboDesk 250k
     action_repeat: int = 2
@@ -82,10 +94,11 @@ class FinetuneConfig:
     disc_gp_scale: float = 10.0  # weight of its input-space gradient penalty (WGAN-GP / DAC)
 
     def __post_init__(self) -> None:
-        choices = {"paradigm": PARADIGMS, "imagine_heads": ("random", "mean"), "penalty": PENALTIES}
-        for name, allowed in choices.items():
+        for name, allowed in CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"setting {name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
+        if self.num_envs < 1:
+            raise ConfigError(f"setting num_envs must be at least 1, got {self.num_envs}")
         if self.model_heads < 1:
             raise ConfigError(f"setting model_heads must be >= 1, got {self.model_heads}")
         if not 0.0 < self.demo_fraction < 1.0:
@@ -114,8 +127,8 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise ConfigError(f"unknown setting(s) {unknown} in {path or 'overrides'}; known: {sorted(fields)}")
-    if values.get("agent", "hauwm") not in ("hauwm", "scratch"):
-        raise ConfigError(f"agent must be 'hauwm' or 'scratch', got {values['agent']!r}")
+    if values.get("compile") is False:  # YAML reads a bare `off` as false
+        values["compile"] = "off"
     for name, value in values.items():
         default = fields[name].default
         if isinstance(default, bool) and not isinstance(value, bool):

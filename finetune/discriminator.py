@@ -50,7 +50,7 @@ class Discriminator(nn.Module):
             return self.logit(feat, action)
 
     def update(self, expert_feat: torch.Tensor, expert_action: torch.Tensor, policy_feat: torch.Tensor,
-               policy_action: torch.Tensor) -> dict[str, float]:
+               policy_action: torch.Tensor) -> dict[str, torch.Tensor]:
         """One Adam step on L_D from expert pairs [..., F], [..., A] and (detached) policy pairs of any count."""
         expert = torch.cat([expert_feat, expert_action], -1).flatten(0, -2).detach()  # [N_e, F + A]
         policy = torch.cat([policy_feat, policy_action], -1).flatten(0, -2).detach()  # [N_p, F + A]
@@ -69,6 +69,6 @@ class Discriminator(nn.Module):
         self.optimizer.step()
         with torch.no_grad():
             accuracy = 0.5 * ((expert_logit > 0).float().mean() + (policy_logit < 0).float().mean())
-        return {"disc_loss": bce.item(), "disc_penalty": penalty.item(), "disc_grad_norm": norm.item(),
-                "disc_expert_prob": torch.sigmoid(expert_logit).mean().item(),
-                "disc_policy_prob": torch.sigmoid(policy_logit).mean().item(), "disc_accuracy": accuracy.item()}
+            return {"disc_loss": bce.detach(), "disc_penalty": penalty.detach(), "disc_grad_norm": norm,
+                    "disc_expert_prob": torch.sigmoid(expert_logit).mean(),
+                    "disc_policy_prob": torch.sigmoid(policy_logit).mean(), "disc_accuracy": accuracy}

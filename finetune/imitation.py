@@ -82,10 +82,16 @@ class ImitationAgent(Agent):
         self.expert: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's expert pairs
         self.policy: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's imagined pairs
 
-    def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
+    def update(self, batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         """`batch`: a MixedReplay batch, demonstrations last; its rewards are dropped."""
-        metrics = super().update({key: value for key, value in batch.items() if key != "reward"})
-        metrics.update(self.discriminator.update(*self.expert, *self.policy))
+        return super().update({key: value for key, value in batch.items() if key != "reward"})
+
+    def reward_modules(self) -> list[torch.nn.Module]:
+        return [self.discriminator]
+
+    def finish_update(self) -> dict[str, torch.Tensor]:
+        """The discriminator's step on this update's expert and imagined pairs."""
+        metrics = self.discriminator.update(*self.expert, *self.policy)
         self.expert = self.policy = None
         return metrics
 

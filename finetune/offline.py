@@ -29,7 +29,8 @@ from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
 from finetune.train import (CHECKPOINT, FinetuneError, build_agent, evaluate, exclusive, export_fingerprint,
-                            load_checkpoint, load_dataset, next_multiple, resolve_device, save_checkpoint)
+                            load_checkpoint, load_dataset, mean_metrics, next_multiple, resolve_device,
+                            save_checkpoint)
 from finetune.world_model import Latent
 
 
@@ -45,10 +46,8 @@ class OfflineAgent(Agent):
         self.penalty.measure_dataset(start, batch["action"])
         return self.penalty
 
-    def update(self, batch: dict[str, np.ndarray]) -> dict[str, float]:
-        metrics = super().update(batch)
-        metrics.update(self.penalty.metrics)
-        return metrics
+    def finish_update(self) -> dict[str, torch.Tensor]:
+        return dict(self.penalty.metrics)
 
 
 def train_offline(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: bool = True) -> dict[str, float]:
@@ -99,7 +98,7 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
         updates = counters["updates"]
         if updates >= counters["next_log"] or updates >= cfg.steps:
             now = time.perf_counter()
-            metrics = {k: float(np.mean([m[k] for m in window["metrics"]])) for k in window["metrics"][0]}
+            metrics = mean_metrics(window["metrics"])
             metrics["updates_per_s"] = (updates - window["updates"]) / (now - window["time"])
             logger.write("train", updates, metrics)
             bar.set_postfix(model_loss=f"{metrics['model_loss']:.1f}", u=f"{metrics['penalty_u_imagined']:.3g}")

@@ -53,7 +53,7 @@ class PenalisedReward:
 
     def __init__(self, world_model: WorldModel, kind: str, scale: float, frozen_weight: float):
         self.world_model, self.kind, self.scale, self.frozen_weight = world_model, kind, scale, frozen_weight
-        self.metrics: dict[str, float] = {}
+        self.metrics: dict[str, torch.Tensor] = {}
 
     def __call__(self, rollout: Rollout) -> torch.Tensor:
         reward = self.world_model.predicted_reward(rollout.new_feats)  # [H, N]
@@ -62,10 +62,10 @@ class PenalisedReward:
         total = u
         if rollout.frozen_means is not None:
             frozen_u = disagreement(rollout.frozen_means.transpose(0, 1))  # [H, N], no gradient (action-free)
-            self.metrics["frozen_disagreement_imagined"] = frozen_u.mean().item()
+            self.metrics["frozen_disagreement_imagined"] = frozen_u.mean().detach()
             if self.frozen_weight > 0:
                 total = u + self.frozen_weight * frozen_u
-        self.metrics.update({"penalty_u_imagined": u.mean().item(), "imagined_model_reward": reward.mean().item()})
+        self.metrics.update({"penalty_u_imagined": u.mean().detach(), "imagined_model_reward": reward.mean().detach()})
         return reward - self.scale * total
 
     @torch.no_grad()
@@ -75,8 +75,8 @@ class PenalisedReward:
         wm = self.world_model
         new = RSSMState(start.new.deter[:, :-1].flatten(0, 1), start.new.stoch[:, :-1].flatten(0, 1))  # [N, ·]
         _, mean, std = wm.rssm.img_step(new, actions[:, 1:].flatten(0, 1))  # [M, N, S]
-        self.metrics["penalty_u_dataset"] = uncertainty(self.kind, mean, std, wm.next_stoch(mean, std)).mean().item()
+        self.metrics["penalty_u_dataset"] = uncertainty(self.kind, mean, std, wm.next_stoch(mean, std)).mean()
         if start.frozen is not None:
             frozen = RSSMState(start.frozen.deter[:, :-1].flatten(0, 1), start.frozen.stoch[:, :-1].flatten(0, 1))
             heads = wm.frozen.rssm.img_step(frozen, wm.frozen_cond(frozen.deter.shape[0]))[1]  # [M', N, S']
-            self.metrics["frozen_disagreement_dataset"] = disagreement(heads).mean().item()
+            self.metrics["frozen_disagreement_dataset"] = disagreement(heads).mean()

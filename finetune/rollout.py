@@ -32,8 +32,8 @@ class AgentPolicy:
         self.latent, self.prev_action = self.agent.initial()
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        action, self.latent, self.prev_action = self.agent.act(obs, self.latent, self.prev_action, self.explore)
-        return action
+        action, self.latent, self.prev_action = self.agent.act(obs[None], self.latent, self.prev_action, self.explore)
+        return action[0]
 
 
 def play_episode(env, policy: Policy, seed: int | None = None) -> dict[str, np.ndarray]:

@@ -1,7 +1,9 @@
 """The online fine-tuning loop (paper Algorithm 1, phase 2): act → replay → update → evaluate → checkpoint.
 
-Counts are environment steps (frames). The first `prefill` steps take uniformly random actions; after
-that one gradient update (world model, then actor and critic) runs every `train_every` env steps.
+Counts are environment steps (frames), summed over the `num_envs` training envs. The first `prefill`
+steps take uniformly random actions; after that one gradient update (world model, then actor and critic)
+runs every `train_every` env steps. With several envs (worker processes, finetune/envs/vector.py) the
+envs act as one batch and the updates due run while the workers step; each env fills its own episodes.
 Every `eval_every` env steps the policy's mode plays `eval_episodes` episodes on a separately seeded
 environment; returns are logged raw and normalised with the paper's Table 4 references where the task
 has them. `checkpoint.pt` in the run directory holds everything but the frozen export and the replay
@@ -11,6 +13,7 @@ has them. `checkpoint.pt` in the run directory holds everything but the frozen e
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import fcntl
 import hashlib
@@ -24,7 +27,7 @@ import torch
 import yaml
 from tqdm import tqdm
 
-from finetune.agent import Agent
+from finetune.agent import Agent, resolve_compile
 from finetune.config import FinetuneConfig
 from finetune.logger import Logger
 from finetune.replay import Replay
@@ -32,6 +35,7 @@ from finetune.rollout import AgentPolicy, play_episode
 
 CHECKPOINT = "checkpoint.pt"
 LOCK = ".lock"
+ENV_SEED_STRIDE = 1_000_000  # env i of a run starts from seed + i · this (env 0: the seed a single env gets)
 
 
 class FinetuneError(RuntimeError):
@@ -57,15 +61,18 @@ def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | N
     from finetune.pretrained import k1_embedding, load_pretrained
 
     if cfg.agent == "scratch":
-        return agent_class(cfg, action_dim).to(device)
-    if pretrained is None:
+        agent = agent_class(cfg, action_dim).to(device)
+    elif pretrained is None:
         raise FinetuneError("agent 'hauwm' needs --pretrained DIR (an export of `hauwm pretrain export`); "
                             "or run the scratch baseline with --set agent=scratch")
-    frozen = load_pretrained(pretrained)
-    try:
-        return agent_class(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
-    except ValueError as error:  # sizes of the config that do not fit the export
-        raise FinetuneError(f"--pretrained {pretrained}: {error}") from None
+    else:
+        frozen = load_pretrained(pretrained)
+        try:
+            agent = agent_class(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
+        except ValueError as error:  # sizes of the config that do not fit the export
+            raise FinetuneError(f"--pretrained {pretrained}: {error}") from None
+    agent.set_compile(resolve_compile(cfg.compile, device))
+    return agent
 
 
 def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, flag: str) -> list[dict[str, np.ndarray]]:
@@ -159,6 +166,12 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
     return result
 
 
+def mean_metrics(window: list[dict[str, torch.Tensor]]) -> dict[str, float]:
+    """Each metric's mean over a log window of updates, read from the device in one transfer."""
+    rows = torch.stack([torch.stack(list(m.values())) for m in window]).tolist()  # [updates, metrics]
+    return {name: float(np.mean([row[i] for row in rows])) for i, name in enumerate(window[0])}
+
+
 @contextlib.contextmanager
 def exclusive(logdir: Path) -> Iterator[None]:
     """Hold an exclusive lock on `logdir` (released when the run ends, also if it is killed): two runs
@@ -195,9 +208,15 @@ def train(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: b
         return run(cfg, pretrained, progress)
 
 
+def new_episode(obs: np.ndarray, action_shape: tuple[int, ...]) -> dict[str, list]:
+    """An episode's first entry: o_0 with a zero action and zero reward (the replay's alignment)."""
+    return {"obs": [obs], "action": [np.zeros(action_shape, np.float32)], "reward": [0.0]}
+
+
 def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hooks: LoopHooks = LoopHooks()) -> dict[str, float]:
     """The loop itself, in a run directory this process holds the lock of."""
     from finetune.envs import make_env
+    from finetune.envs.vector import make_vector_env
 
     logdir = Path(cfg.logdir)
     device = resolve_device(cfg.device)
@@ -210,6 +229,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     except ValueError as error:  # an unknown task name
         raise FinetuneError(f"task {cfg.task!r}: {error}") from None
     action_dim = probe.action_space.shape[0]
+    probe.close()
     agent = build_agent(cfg, action_dim, pretrained, device, hooks.agent_class)
     fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
     counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
@@ -222,70 +242,108 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
 
     # a resumed run reseeds from its progress, so it does not replay the same random streams; with hooks.reseed
     # each episode is seeded from its index instead, in the envs of a fresh run (Meta-World draws its 50 goal
-    # placements from the seed an env is made with)
-    resumed = counters["episodes"] > 0 and not hooks.reseed
-    seed = cfg.seed + counters["episodes"]
-    env = make_env(cfg.task, seed=seed, **env_kwargs) if resumed else probe
-    env.action_space.seed(seed)
-    eval_env = make_env(cfg.task, seed=cfg.seed + 10_000 + (counters["env_step"] if resumed else 0), **env_kwargs)
+    # placements from the seed an env is made with). Env i of num_envs gets its own seeds (env 0 a single env's).
+    progress_seed = 0 if hooks.reseed else counters["episodes"]
+    seeds = [cfg.seed + progress_seed + ENV_SEED_STRIDE * i for i in range(cfg.num_envs)]
+    eval_env = make_env(cfg.task, seed=cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]), **env_kwargs)
     if hooks.make_replay is None:
         replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
     else:
         replay = hooks.make_replay(cfg, logdir / "replay", rng, action_dim)
     replay.load()
     logger = Logger(logdir)
+    with contextlib.closing(make_vector_env(cfg.task, seeds, **env_kwargs)) as envs:
+        return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, checkpoint, fingerprint,
+                    progress, hooks.reseed)
 
-    def reset() -> np.ndarray:
-        if not hooks.reseed:
-            return env.reset()[0]
-        episode_seed = cfg.seed + counters["episodes"]
-        env.action_space.seed(episode_seed)
-        return env.reset(seed=episode_seed)[0]
 
-    obs = reset()
-    latent, prev_action = agent.initial()
-    episode = {"obs": [obs], "action": [np.zeros(env.action_space.shape, np.float32)], "reward": [0.0]}
+def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, replay: Replay, rng: np.random.Generator,
+         logger: Logger, counters: dict[str, int], checkpoint: Path, fingerprint: str, progress: bool,
+         reseed: bool) -> dict[str, float]:
+    """Act in `envs` (a gymnasium vector env), store finished episodes, update, log, evaluate, checkpoint.
+
+    With several envs in worker processes, the updates due run while the workers step and render; with
+    one env in this process, the loop runs one env step at a time, as a single env always did. With
+    `reseed`, every episode env i starts is reset with seed + episodes so far + ENV_SEED_STRIDE · i (and
+    its prefill sampler reseeded alike), and every evaluation with seed + 10,000 + env steps: with one env,
+    a run resumed from a checkpoint taken at an episode's end continues exactly as an unbroken one.
+    """
+    parallel = cfg.num_envs > 1
+    samplers = [copy.deepcopy(envs.single_action_space) for _ in seeds]  # prefill's uniform actions, per env
+    for sampler, seed in zip(samplers, seeds):
+        sampler.seed(seed)
+    action_shape = envs.single_action_space.shape
+
+    def reseeded(starting: np.ndarray) -> np.ndarray:
+        """Reset the envs where `starting` [N] is true with their episode seeds; all envs' frames [N, 3, 64, 64]."""
+        episode_seeds = [cfg.seed + counters["episodes"] + ENV_SEED_STRIDE * i for i in range(cfg.num_envs)]
+        for i in np.flatnonzero(starting):
+            samplers[i].seed(episode_seeds[i])
+        return envs.reset(seed=episode_seeds, options={"reset_mask": starting})[0]
+
+    obs = reseeded(np.ones(cfg.num_envs, bool)) if reseed else envs.reset()[0]  # [N, 3, 64, 64]
+    latent, prev_action = agent.initial(cfg.num_envs)
+    episodes = [new_episode(frame, action_shape) for frame in obs]
     last_eval: dict[str, float] = {}
     bar = tqdm(total=cfg.steps, initial=counters["env_step"], unit=" env step", desc=cfg.task, disable=not progress,
                dynamic_ncols=True)
     window = {"time": time.perf_counter(), "updates": counters["updates"], "metrics": []}
-    while counters["env_step"] < cfg.steps:
-        action, latent, prev_action = agent.act(obs, latent, prev_action, explore=True)
-        if counters["env_step"] < cfg.prefill:
-            action = env.action_space.sample().astype(np.float32)
-            prev_action = torch.as_tensor(action, device=agent.device).unsqueeze(0)
-        obs, reward, terminated, truncated, _ = env.step(action)
-        for key, value in (("obs", obs), ("action", action), ("reward", float(reward))):
-            episode[key].append(value)
-        counters["env_step"] += cfg.action_repeat
-        bar.update(cfg.action_repeat)
 
-        if terminated or truncated:
-            replay.add({"obs": np.stack(episode["obs"]), "action": np.stack(episode["action"]).astype(np.float32),
-                        "reward": np.asarray(episode["reward"], np.float32)})
-            counters["episodes"] += 1
-            logger.write("episodes", counters["env_step"], {"return": float(sum(episode["reward"])),
-                                                           "length": len(episode["reward"]) - 1})
-            obs = reset()
-            latent, prev_action = agent.initial()
-            episode = {"obs": [obs], "action": [episode["action"][0]], "reward": [0.0]}
-
+    def train_due() -> None:
         updates_due = max(0, counters["env_step"] - cfg.prefill) // cfg.train_every
         while counters["updates"] < updates_due and replay.ready(cfg.seq_len):
             window["metrics"].append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
             counters["updates"] += 1
 
+    while counters["env_step"] < cfg.steps:
+        actions, latent, prev_action = agent.act(obs, latent, prev_action, explore=True)  # [N, A]
+        if counters["env_step"] < cfg.prefill:
+            actions = np.stack([sampler.sample() for sampler in samplers]).astype(np.float32)
+            prev_action = torch.as_tensor(actions, device=agent.device)
+        if parallel:
+            envs.step_async(actions)
+            train_due()  # the learner trains while the workers step and render
+            obs, rewards, terminated, truncated, info = envs.step_wait()
+        else:
+            obs, rewards, terminated, truncated, info = envs.step(actions)
+        done = terminated | truncated  # those envs were reset in this step: obs[i] starts their next episode
+        for i, episode in enumerate(episodes):
+            episode["obs"].append(info["final_obs"][i] if done[i] else obs[i])
+            episode["action"].append(actions[i])
+            episode["reward"].append(float(rewards[i]))
+        counters["env_step"] += cfg.num_envs * cfg.action_repeat
+        bar.update(cfg.num_envs * cfg.action_repeat)
+
+        for i in np.flatnonzero(done):
+            episode = episodes[i]
+            replay.add({"obs": np.stack(episode["obs"]), "action": np.stack(episode["action"]).astype(np.float32),
+                        "reward": np.asarray(episode["reward"], np.float32)})
+            counters["episodes"] += 1
+            logger.write("episodes", counters["env_step"], {"return": float(sum(episode["reward"])),
+                                                           "length": len(episode["reward"]) - 1})
+        if done.any():
+            if reseed:  # the autoreset's first frames are replaced by those of the seeded resets
+                obs = reseeded(done)
+            for i in np.flatnonzero(done):
+                episodes[i] = new_episode(obs[i], action_shape)
+            latent, prev_action = agent.restart(latent, prev_action, done)
+        if not parallel:
+            train_due()
+
         if counters["env_step"] >= counters["next_log"] and window["metrics"]:
             now = time.perf_counter()
-            metrics = {k: float(np.mean([m[k] for m in window["metrics"]])) for k in window["metrics"][0]}
+            metrics = mean_metrics(window["metrics"])
             metrics["updates_per_s"] = (counters["updates"] - window["updates"]) / (now - window["time"])
             metrics["updates"] = counters["updates"]
             logger.write("train", counters["env_step"], metrics)
             bar.set_postfix(updates_per_s=f"{metrics['updates_per_s']:.2f}", model_loss=f"{metrics['model_loss']:.1f}")
             window = {"time": now, "updates": counters["updates"], "metrics": []}
             counters["next_log"] = next_multiple(counters["env_step"], cfg.log_every)
-        if counters["env_step"] >= counters["next_eval"] or counters["env_step"] >= cfg.steps:
-            eval_seed = cfg.seed + 10_000 + counters["env_step"] if hooks.reseed else None
+        eval_due = counters["env_step"] >= counters["next_eval"] or counters["env_step"] >= cfg.steps
+        if eval_due or counters["env_step"] >= counters["next_checkpoint"]:
+            train_due()  # evaluations and checkpoints see every update due so far, also with parallel envs
+        if eval_due:
+            eval_seed = cfg.seed + 10_000 + counters["env_step"] if reseed else None
             last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=eval_seed)
             logger.write("eval", counters["env_step"], last_eval)
             bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))

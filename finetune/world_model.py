@@ -83,9 +83,9 @@ class Latent(NamedTuple):
 
 
 @contextlib.contextmanager
-def no_param_grads(module: nn.Module) -> Iterator[None]:
-    """Build graphs that reach `module`'s outputs but record no gradients for its parameters."""
-    params = [p for p in module.parameters() if p.requires_grad]
+def no_param_grads(*modules: nn.Module) -> Iterator[None]:
+    """Build graphs that reach the `modules`' outputs but record no gradients for their parameters."""
+    params = [p for module in modules for p in module.parameters() if p.requires_grad]
     for p in params:
         p.requires_grad_(False)
     try:
@@ -118,6 +118,7 @@ class WorldModel(nn.Module):
         self.kl_balance, self.kl_scale, self.free_nats = cfg.kl_balance, cfg.kl_scale, cfg.free_nats
         self.optimizer = torch.optim.Adam(self.trainable_parameters(), lr=cfg.model_lr, eps=1e-5)
         self.grad_clip = cfg.grad_clip
+        self.conv_bf16 = cfg.conv_bf16
 
     def _decoder(self, cfg: FinetuneConfig, frozen: nn.Module | None) -> Decoder:
         if frozen is None:
@@ -155,6 +156,16 @@ class WorldModel(nn.Module):
         k1 = self.k1_embedding.expand(*shape, -1)
         return k1 + self.noise_std * torch.randn_like(k1)
 
+    def conv_precision(self) -> contextlib.AbstractContextManager:
+        """bf16 autocast for the convolutional encoder and decoder when `conv_bf16` is set (a no-op otherwise)."""
+        return torch.autocast(self.reward[0].weight.device.type, torch.bfloat16, enabled=self.conv_bf16)
+
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        """The image embedding (the frozen encoder's, or the scratch baseline's own) in float32: [..., E]."""
+        with self.conv_precision():
+            embed = (self.frozen.encoder if self.frozen is not None else self.encoder)(images)
+        return embed.float()
+
     # -- filtering real sequences -------------------------------------------------------------------
 
     def observe(self, obs: torch.Tensor, actions: torch.Tensor) -> tuple[Latent, tuple[torch.Tensor, ...]]:
@@ -164,19 +175,21 @@ class WorldModel(nn.Module):
         images = preprocess(obs)
         if self.frozen is not None:
             with torch.no_grad():
-                frozen = self.frozen.rssm.observe(self.frozen.encoder(images), self.frozen_cond(batch, length))
+                frozen = self.frozen.rssm.observe(self.encode(images), self.frozen_cond(batch, length))
             frozen_state = RSSMState(frozen.deter, frozen.stoch)
             posterior_input = self.frozen.rssm.feature(frozen_state)  # [B, L, 230]
         else:
-            frozen_state, posterior_input = None, self.encoder(images)
+            frozen_state, posterior_input = None, self.encode(images)
         new = self.rssm.observe(posterior_input, actions)
         dists = (new.post_mean, new.post_std, new.prior_mean, new.prior_std)
         return Latent(frozen_state, RSSMState(new.deter, new.stoch)), dists
 
-    def loss(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, Latent, dict[str, float]]:
+    def loss(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, Latent, dict[str, torch.Tensor]]:
+        """The loss of the new parts on a replay batch, the posterior latents, and detached metrics (no host sync)."""
         latent, (post_mean, post_std, prior_mean, prior_std) = self.observe(batch["obs"], batch["action"])
         feat = self.rssm.feature(latent.new)  # [B, L, F~]
-        recon = self.decoder(feat)  # [B, L, 3, 64, 64]
+        with self.conv_precision():
+            recon = self.decoder(feat)  # [B, L, 3, 64, 64] (bf16 under conv_bf16; the NLL upcasts it)
         recon_nll = reconstruction_nll(recon, preprocess(batch["obs"])).mean()
         if "reward" in batch:
             reward_nll = 0.5 * (self.reward(feat).squeeze(-1) - batch["reward"]).pow(2).mean()
@@ -187,16 +200,18 @@ class WorldModel(nn.Module):
         kl_post = gaussian_kl(post_mean, post_std, prior_mean.detach(), prior_std.detach()).mean()  # regularises q
         kl = self.kl_balance * kl_prior.clamp(min=self.free_nats) + (1 - self.kl_balance) * kl_post.clamp(min=self.free_nats)
         loss = recon_nll + reward_nll + self.kl_scale * kl
-        metrics = {"model_loss": loss.item(), "recon_nll": recon_nll.item(), "reward_nll": reward_nll.item(),
-                   "kl": kl_post.item()}
-        return loss, latent, metrics
+        metrics = {"model_loss": loss, "recon_nll": recon_nll, "reward_nll": reward_nll, "kl": kl_post}
+        return loss, latent, {name: value.detach() for name, value in metrics.items()}
 
-    def update(self, batch: dict[str, torch.Tensor]) -> tuple[Latent, dict[str, float]]:
+    def update(self, batch: dict[str, torch.Tensor]) -> tuple[Latent, dict[str, torch.Tensor]]:
         """One Adam step on the new parts; returns the (detached) posterior latents as imagination starts."""
-        loss, latent, metrics = self.loss(batch)
+        return self.step(*self.loss(batch))
+
+    def step(self, loss: torch.Tensor, latent: Latent, metrics: dict[str, torch.Tensor]) -> tuple[Latent, dict[str, torch.Tensor]]:
+        """Backward, clip and Adam step on the result of `loss` (which the agent may run compiled)."""
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        metrics["model_grad_norm"] = nn.utils.clip_grad_norm_(self.trainable_parameters(), self.grad_clip).item()
+        metrics["model_grad_norm"] = nn.utils.clip_grad_norm_(self.trainable_parameters(), self.grad_clip)
         self.optimizer.step()
         detached = Latent(*(None if s is None else RSSMState(s.deter.detach(), s.stoch.detach()) for s in latent))
         return detached, metrics
@@ -213,10 +228,10 @@ class WorldModel(nn.Module):
         images = preprocess(obs)
         if self.frozen is not None:
             cond = self.frozen_cond(obs.shape[0])
-            frozen = self.frozen.rssm.obs_step(latent.frozen, cond, self.frozen.encoder(images))[0]
+            frozen = self.frozen.rssm.obs_step(latent.frozen, cond, self.encode(images))[0]
             posterior_input = self.frozen.rssm.feature(frozen)
         else:
-            frozen, posterior_input = None, self.encoder(images)
+            frozen, posterior_input = None, self.encode(images)
         new = self.rssm.obs_step(latent.new, prev_action, posterior_input)[0]
         return Latent(frozen, new)
 

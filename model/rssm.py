@@ -151,16 +151,15 @@ class EnsembleRSSM(nn.Module):
     ) -> Observation:
         """Filter a sequence: embeds [B, L, E], conds [B, L, C] (cond of the gap before each frame) → Observation.
 
-        noise [B, L, S]: the standard-normal draws of the posterior samples (`draw_noise`; fresh from the global
-        RNG when None). Passing it in keeps the random draw out of a compiled region and makes it reproducible.
+        noise [B, L, S]: the standard-normal draws of the posterior samples (`draw_noise`; when None, each step
+        draws its own from the global RNG). Passing it in keeps the random draw out of a compiled region and
+        makes it reproducible (pre-training); fine-tuning draws step by step.
         """
         if state is None:
             state = self.initial(embeds.shape[0], embeds.device)
-        if noise is None:
-            noise = self.draw_noise(*embeds.shape[:2], device=embeds.device)
         steps = []
         for t in range(embeds.shape[1]):
-            state, *dists = self.obs_step(state, conds[:, t], embeds[:, t], noise[:, t])
+            state, *dists = self.obs_step(state, conds[:, t], embeds[:, t], None if noise is None else noise[:, t])
             steps.append((state.deter, state.stoch, *dists))
         deter, stoch, post_mean, post_std, prior_mean, prior_std = zip(*steps)
         return Observation(

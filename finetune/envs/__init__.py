@@ -7,8 +7,9 @@
 
 Importing this package sets up headless rendering before anything imports mujoco:
 
-- `MUJOCO_GL=osmesa` by default (Debian package `libosmesa6`); a user's own `MUJOCO_GL` wins
-  (`egl` renders on the GPU where there is one, or with Mesa's software EGL where there is not);
+- `MUJOCO_GL`: a user's own setting wins; otherwise `egl` where an NVIDIA GPU is visible and an EGL
+  context can be made (probed once in a subprocess, with a warning saying why when it cannot), and
+  `osmesa` everywhere else (Debian package `libosmesa6`); see `opengl.py`;
 - dm_control's render-thread offloading is off: each env renders on the thread that uses it, which is
   faster and avoids dm_control's failing clean-up at interpreter exit;
 - triton is imported first where it is installed: it and Mesa's software rasteriser (llvmpipe) each
@@ -27,7 +28,10 @@ if "MUJOCO_GL" not in os.environ and "mujoco" in sys.modules:
         "already and headless rendering may fail; set MUJOCO_GL=osmesa (or egl) before starting Python",
         stacklevel=2,
     )
-os.environ.setdefault("MUJOCO_GL", "osmesa")
+if "MUJOCO_GL" not in os.environ:
+    from finetune.envs.opengl import choose_mujoco_gl
+
+    os.environ["MUJOCO_GL"] = choose_mujoco_gl()
 if os.environ["MUJOCO_GL"] in ("osmesa", "egl"):  # PyOpenGL (used by mujoco's Python renderer) must agree
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ.setdefault("DISABLE_RENDER_THREAD_OFFLOADING", "1")

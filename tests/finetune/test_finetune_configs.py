@@ -68,3 +68,14 @@ def test_bad_downstream_settings_are_refused():
                               ({"penalty_scale": -1}, "must be >= 0")]:
         with pytest.raises(ConfigError, match=message):
             load_config(None, settings)
+
+
+def test_speed_settings_are_checked():
+    assert load_config(None, dict([parse_override("compile=off")])).compile == "off"  # YAML reads off as false
+    assert load_config(None, {"compile": "reduce-overhead", "num_envs": 4}).num_envs == 4
+    with pytest.raises(ConfigError, match="compile must be one of auto, off, default, reduce-overhead"):
+        load_config(None, {"compile": "max-autotune"})
+    with pytest.raises(ConfigError, match="num_envs must be at least 1"):
+        load_config(None, {"num_envs": 0})
+    with pytest.raises(ConfigError, match="conv_bf16 must be true or false"):
+        load_config(None, {"conv_bf16": "yes"})

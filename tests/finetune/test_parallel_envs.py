@@ -1,0 +1,137 @@
+"""Training envs as one batch (`num_envs`): one env reproduces what a seed gave before, several envs keep
+their episodes apart, and the vector env resets an env inside the step that ends its episode."""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from finetune.config import load_config
+from finetune.envs import make_env, opengl
+from finetune.envs.vector import make_vector_env
+from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, train
+
+# `configs/finetune/demo.yaml` with the tests' export (conftest.py), device cpu, 1 thread, recorded on main at
+# 073e62e (before num_envs and compile existed) on this project's development CPU (AMD EPYC, AVX2):
+# (env_step, return) per training episode and per evaluation; (env_step, updates, model_loss, actor_loss,
+# critic_loss, imagined_return) per train.csv row. Another CPU's float rounding may move the losses slightly.
+RECORDED = {
+    "episodes": [(100, 0.1561575450745078), (200, 0.7060239111946077), (300, 0.29353794056289195),
+                 (400, 2.227971920963988), (500, 0.6441088203021209), (600, 2.804059596021247)],
+    "eval": [(300, 2.045431507083055), (600, 0.5878169638698936)],
+    "train": [(216, 1, 920.0208740234375, -0.33047324419021606, 0.22595134377479553, 0.34209972620010376),
+              (300, 6, 766.796044921875, -0.31765310764312743, 0.19009290933609008, 0.3292596638202667),
+              (400, 12, 575.3302815755209, -0.2584485113620758, 0.13836394250392914, 0.26835808406273526),
+              (500, 18, 436.14552815755206, -0.2464016651113828, 0.11375650390982628, 0.25664304941892624),
+              (600, 25, 337.59950474330356, -0.25166759320667814, 0.08502030159745898, 0.26177499123982023)],
+}
+COLUMNS = {"episodes": ("env_step", "return"), "eval": ("env_step", "return"),
+           "train": ("env_step", "updates", "model_loss", "actor_loss", "critic_loss", "imagined_return")}
+
+
+def rows(path):
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_one_env_reproduces_the_figures_recorded_before_num_envs_existed(export_dir, tmp_path):
+    torch.set_num_threads(1)
+    cfg = load_config("configs/finetune/demo.yaml", dict(logdir=str(tmp_path / "run"), device="cpu", threads=1))
+    assert cfg.num_envs == 1 and cfg.compile == "auto"  # the defaults: one env in this process, eager on the CPU
+    train(cfg, export_dir, progress=False)
+    for kind, recorded in RECORDED.items():
+        logged = [tuple(float(row[column]) for column in COLUMNS[kind]) for row in rows(tmp_path / "run" / f"{kind}.csv")]
+        assert logged == [pytest.approx(values, rel=1e-5, abs=1e-9) for values in recorded], kind
+
+
+def replay_episodes(logdir):
+    episodes = []
+    for path in sorted((logdir / "replay").glob("*.npz")):
+        with np.load(path) as data:
+            episodes.append({key: data[key] for key in ("obs", "action", "reward")})
+    return episodes
+
+
+def test_parallel_envs_keep_their_episodes_apart_and_resume(export_dir, tiny_config, tmp_path):
+    """Random-action episodes of 2 envs in worker processes equal, entry for entry, those of single envs with
+    each env's seed; then the run goes on with updates and resumes."""
+    settings = dict(task="dmc_cartpole_swingup", action_repeat=2, time_limit=10, fast_render=True, prefill=80,
+                    train_every=10, eval_every=1000, eval_episodes=1, log_every=40, checkpoint_every=1000)
+    single = [tiny_config(**settings, seed=seed, steps=40, logdir=str(tmp_path / f"single{seed}"))
+              for seed in (0, ENV_SEED_STRIDE)]
+    for cfg in single:
+        train(cfg, export_dir, progress=False)
+    parallel = tiny_config(**settings, seed=0, steps=80, num_envs=2, logdir=str(tmp_path / "parallel"))
+    train(parallel, export_dir, progress=False)
+
+    episodes = replay_episodes(tmp_path / "parallel")  # envs 0 and 1 end their episodes in the same steps
+    expected = [replay_episodes(tmp_path / "single0"), replay_episodes(tmp_path / f"single{ENV_SEED_STRIDE}")]
+    assert len(episodes) == 4 and all(len(e) == 2 for e in expected)
+    for index, episode in enumerate(episodes):  # order: env 0, env 1, env 0, env 1
+        for key, value in episode.items():
+            np.testing.assert_array_equal(value, expected[index % 2][index // 2][key], err_msg=f"{index} {key}")
+
+    logdir = tmp_path / "parallel"
+    train(load_config(logdir / "config.yaml", dict(steps=160)), export_dir, progress=False)  # resumes at 80
+    counters = torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]
+    assert counters["env_step"] == 160 and counters["episodes"] == 8
+    assert counters["updates"] == (160 - 80) // 10  # every update due, also those due at the last step
+    assert len(replay_episodes(logdir)) == 8
+    assert [int(row["env_step"]) for row in rows(logdir / "episodes.csv")] == [40, 40, 80, 80, 120, 120, 160, 160]
+
+
+def test_vector_env_resets_an_env_in_the_step_that_ends_its_episode():
+    """SAME_STEP autoreset: the last frame of the episode in info["final_obs"], the next episode's first in obs;
+    every env steps exactly as a single env with its seed."""
+    seeds, actions = [3, 4], np.random.default_rng(0).uniform(-1, 1, (3, 2, 1)).astype(np.float32)
+    envs = make_vector_env("dmc_cartpole_swingup", seeds, fast_render=True, time_limit=3)
+    singles = [make_env("dmc_cartpole_swingup", seed=seed, fast_render=True, time_limit=3) for seed in seeds]
+    try:
+        obs, _ = envs.reset()
+        for i, env in enumerate(singles):
+            np.testing.assert_array_equal(obs[i], env.reset()[0])
+        for t in range(3):
+            obs, rewards, terminated, truncated, info = envs.step(actions[t])
+            assert not terminated.any() and list(truncated) == [t == 2] * 2
+            for i, env in enumerate(singles):
+                frame, reward, _, _, _ = env.step(actions[t, i])
+                assert rewards[i] == reward
+                np.testing.assert_array_equal(info["final_obs"][i] if t == 2 else obs[i], frame)
+        for i, env in enumerate(singles):  # the next episode has begun
+            np.testing.assert_array_equal(obs[i], env.reset()[0])
+        assert not np.array_equal(obs[0], obs[1])  # two seeds, two start states
+    finally:
+        envs.close()
+        for env in singles:
+            env.close()
+
+
+def test_mujoco_gl_is_egl_only_with_a_gpu_where_egl_works(monkeypatch):
+    monkeypatch.setattr(opengl, "nvidia_gpu_visible", lambda: False)
+    assert opengl.choose_mujoco_gl() == "osmesa"
+    monkeypatch.setattr(opengl, "nvidia_gpu_visible", lambda: True)
+    monkeypatch.setattr(opengl, "probe_egl", lambda: None)
+    assert opengl.choose_mujoco_gl() == "egl"
+    monkeypatch.setattr(opengl, "probe_egl", lambda: "eglInitialize failed")
+    with pytest.warns(UserWarning, match="eglInitialize failed.*OSMesa"):
+        assert opengl.choose_mujoco_gl() == "osmesa"
+
+
+def test_egl_probe_reports_why_it_failed(monkeypatch):
+    monkeypatch.setattr(opengl, "EGL_PROBE", "raise SystemExit('no EGL device')")
+    assert opengl.probe_egl() == "no EGL device"
+
+
+@pytest.mark.parametrize("user_setting", ["osmesa", "egl"])
+def test_a_users_mujoco_gl_wins(user_setting):
+    env = {key: value for key, value in os.environ.items() if key != "PYOPENGL_PLATFORM"}
+    env["MUJOCO_GL"] = user_setting
+    code = "import os, finetune.envs; print(os.environ['MUJOCO_GL'], os.environ['PYOPENGL_PLATFORM'])"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split() == [user_setting, user_setting]
