@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import csv
 
+import numpy as np
 import pytest
 import torch
 
 from finetune.config import ConfigError
 from finetune.discriminator import Discriminator
 from finetune.imitation import ImitationAgent, train_imitation
-from finetune.train import CHECKPOINT, FinetuneError, build_agent
+from finetune.envs import make_env
+from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, FinetuneError, build_agent
 
 
 def test_discriminator_separates_expert_latents_from_random_ones_after_a_few_steps():
@@ -112,3 +114,21 @@ def test_bad_imitation_settings_are_refused_with_clear_errors(export_dir, tiny_c
         train_imitation(imitation_config(tiny_config, tmp_path / "b", 16, seq_len=20), export_dir, progress=False)
     with pytest.raises(FinetuneError, match="paradigm 'imitation'"):
         train_imitation(tiny_config(logdir=str(tmp_path / "c")), export_dir, progress=False)
+
+
+def test_with_parallel_envs_every_episode_starts_from_its_own_seed(export_dir, tiny_config, tmp_path, two_demos):
+    """num_envs 2: env i's episodes are reset with seed + episodes so far + i · ENV_SEED_STRIDE, in the env
+    made with the seed of a fresh run, and end up apart in the replay."""
+    cfg = imitation_config(tiny_config, tmp_path / "run", 32, num_envs=2, eval_every=32, checkpoint_every=32)
+    train_imitation(cfg, export_dir, progress=False)
+    episodes = sorted((tmp_path / "run" / "replay").glob("*.npz"))
+    assert len(episodes) == 4  # both envs end an 8-step episode at env steps 16 and 32
+    env_kwargs = dict(action_repeat=1, time_limit=8, fast_render=True)
+    for index, path in enumerate(episodes):  # order: env 0, env 1, env 0, env 1
+        env_index, episodes_before = index % 2, 2 * (index // 2)
+        env = make_env(cfg.task, seed=cfg.seed + ENV_SEED_STRIDE * env_index, **env_kwargs)
+        first = env.reset(seed=cfg.seed + episodes_before + ENV_SEED_STRIDE * env_index)[0]
+        env.close()
+        with np.load(path) as episode:
+            assert len(episode["obs"]) == 9
+            np.testing.assert_array_equal(episode["obs"][0], first, err_msg=f"episode {index}")
