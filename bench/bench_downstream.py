@@ -10,8 +10,8 @@ One command, in LOGDIR (default runs/bench_downstream), each step skipped when i
    episodes, noisy ones (the expert with N(0, σ²) action noise: the "medium" part), their merge (medexp),
    and ≤ 10 separate expert demonstrations for imitation;
 2. the random policy's and the expert's returns at the same env settings (10 episodes each);
-3. offline RL on medexp with the penalty (λ = --lam, u = loglik_std), the same with λ = 0, and the same
-   with the frozen stream's disagreement added (one run per --frozen-weights value > 0);
+3. offline RL on medexp with the penalty, u = loglik_std, one run per λ of --lams (default 5 and 0), and
+   the same at the first λ with the frozen stream's disagreement added (one run per --frozen-weights w > 0);
 4. imitation from the demonstrations;
 5. a table: return over the last evaluation's 10 episodes (mean ± std), normalised between the random
    policy (0) and the scripted expert (1) measured here at the same settings (short episodes, so Table 4's
@@ -133,8 +133,10 @@ def main() -> int:
     p.add_argument("--only", choices=["offline", "imitation"], help="run one paradigm only")
     p.add_argument("--updates", type=int, default=1500, help="offline updates per run")
     p.add_argument("--imitation-steps", type=int, default=20_000, help="imitation env steps")
-    p.add_argument("--lam", type=float, default=5.0, help="λ of eq. 6 for the penalised run (LOMPO: 5)")
-    p.add_argument("--frozen-weights", type=float, nargs="*", default=[], help="extra offline runs with these w > 0")
+    p.add_argument("--lams", type=float, nargs="+", default=[5.0, 0.0],
+                   help="λ of eq. 6: one offline run per value (a sweep; LOMPO's default is 5)")
+    p.add_argument("--frozen-weights", type=float, nargs="*", default=[],
+                   help="extra offline runs at the first of --lams with the frozen disagreement's weight w > 0")
     p.add_argument("--expert-episodes", type=int, default=20)
     p.add_argument("--noisy-episodes", type=int, default=40)
     p.add_argument("--noise", type=float, default=0.5, help="σ of the noisy expert's action noise")
@@ -152,9 +154,8 @@ def main() -> int:
     ids = datasets(args) if not args.report else {"medexp": "bench/drawer_close-medexp-v0",
                                                    "demos": "bench/drawer_close-demos-v0"}
     every = max(1, args.updates // 4)
-    offline = {"offline_lam{:g}".format(args.lam): dict(penalty_scale=args.lam),
-               "offline_lam0": dict(penalty_scale=0.0)}
-    offline.update({f"offline_lam{args.lam:g}_frozen{w:g}": dict(penalty_scale=args.lam, penalty_frozen_weight=w)
+    offline = {f"offline_lam{lam:g}": dict(penalty_scale=lam) for lam in args.lams}
+    offline.update({f"offline_lam{args.lams[0]:g}_frozen{w:g}": dict(penalty_scale=args.lams[0], penalty_frozen_weight=w)
                     for w in args.frozen_weights if w > 0})
     plans = {} if args.only == "imitation" else {
         name: {**OFFLINE, **extra, "dataset": ids["medexp"], "steps": args.updates, "eval_every": every,
