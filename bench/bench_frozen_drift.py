@@ -28,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.bench_learning import play_episode  # noqa: E402
+from bench.bench_learning import UniformOrConstant  # noqa: E402
+from finetune.rollout import play_episode  # noqa: E402
 from bench.bench_model_actions import constant_policy  # noqa: E402
 from finetune.config import load_config  # noqa: E402
 from finetune.envs import make_env  # noqa: E402
@@ -66,7 +67,7 @@ def main() -> None:
     replay = Replay(None, capacity=10**6, rng=np.random.default_rng(args.seed))
     rng = np.random.default_rng(args.seed)
     for _ in range(args.episodes):
-        replay.add(play_episode(env, rng))
+        replay.add(play_episode(env, UniformOrConstant(env.action_space.shape, rng)))
     batch = {key: torch.as_tensor(value) for key, value in replay.sample(args.windows, 16).items()}
     with torch.no_grad():
         latent, _ = agent.world_model.observe(batch["obs"], batch["action"])

@@ -49,29 +49,28 @@ GPU_SETTINGS = dict(device="cuda", compile="auto", num_envs=4, eval_every=10_000
                     checkpoint_every=10_000)
 
 
-def play_episode(env, rng: np.random.Generator, constant: float | None = None) -> dict[str, np.ndarray]:
-    """One episode of uniform random actions (constant None) or of one constant action, as a replay entry."""
-    shape = env.action_space.shape
-    obs, _ = env.reset()
-    episode = {"obs": [obs], "action": [np.zeros(shape, np.float32)], "reward": [0.0]}
-    done = False
-    while not done:
-        action = (rng.uniform(-1, 1, shape) if constant is None else np.full(shape, constant)).astype(np.float32)
-        obs, reward, terminated, truncated, _ = env.step(action)
-        episode["obs"].append(obs)
-        episode["action"].append(action)
-        episode["reward"].append(float(reward))
-        done = terminated or truncated
-    return {"obs": np.stack(episode["obs"]), "action": np.stack(episode["action"]),
-            "reward": np.asarray(episode["reward"], np.float32)}
+class UniformOrConstant:
+    """A finetune.rollout policy: uniform random actions drawn from `rng` (constant None) or one constant action."""
+
+    def __init__(self, shape: tuple[int, ...], rng: np.random.Generator, constant: float | None = None) -> None:
+        self.shape, self.rng, self.constant = shape, rng, constant
+
+    def reset(self) -> None:
+        pass
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        if self.constant is None:
+            return self.rng.uniform(-1, 1, self.shape).astype(np.float32)
+        return np.full(self.shape, self.constant, np.float32)
 
 
 def random_returns(task: str, action_repeat: int, episodes: int, seed: int = 123) -> list[float]:
     from finetune.envs import make_env
+    from finetune.rollout import play_episode
 
     env = make_env(task, seed=seed, action_repeat=action_repeat, fast_render=True)
-    rng = np.random.default_rng(seed)
-    return [float(play_episode(env, rng)["reward"].sum()) for _ in range(episodes)]
+    policy = UniformOrConstant(env.action_space.shape, np.random.default_rng(seed))
+    return [float(play_episode(env, policy)["reward"].sum()) for _ in range(episodes)]
 
 
 def plot_curves(curves: dict[str, list[tuple[int, float]]], baseline: list[float], title: str, path: Path) -> None:

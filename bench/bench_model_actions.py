@@ -26,7 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from bench.bench_learning import CPU_SETTINGS, play_episode  # noqa: E402
+from bench.bench_learning import CPU_SETTINGS, UniformOrConstant  # noqa: E402
+from finetune.rollout import play_episode  # noqa: E402
 from finetune.agent import Agent  # noqa: E402
 from finetune.behavior import TruncatedNormal  # noqa: E402
 from finetune.config import load_config  # noqa: E402
@@ -74,8 +75,9 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     replay = Replay(None, cfg.replay_capacity, rng)
     for _ in range(args.episodes):
-        replay.add(play_episode(env, rng))
-    real = [float(play_episode(env, rng, value)["reward"][1:].mean()) for value in CONSTANT_ACTIONS]
+        replay.add(play_episode(env, UniformOrConstant(env.action_space.shape, rng)))
+    real = [float(play_episode(env, UniformOrConstant(env.action_space.shape, rng, value))["reward"][1:].mean())
+            for value in CONSTANT_ACTIONS]
     data_reward = np.mean([ep["reward"][1:].mean() for ep in replay.episodes])
     print(f"reward per agent step, real episode of each constant action {CONSTANT_ACTIONS}: "
           f"{[round(r, 2) for r in real]} (random-action data: {data_reward:.2f})")
