@@ -15,8 +15,8 @@ tiny.yaml (CPU) on one device: its precision, model.compile and log_every_n_step
 workers; progress bar off (its output would interleave) and no validation. Steps/s over the steps after the
 warm-up (whole epochs for short epochs), on
   (a) long epochs: the sample train shards linked 63 times (over 500 steps an epoch at batch 32, 4 workers);
-  (b) short epochs: the sample data's 258 train clips (8 steps an epoch at batch 32, 4 workers: the
-      DataLoader's workers start again every epoch);
+  (b) short epochs: the sample data's 258 train clips (8 steps an epoch at batch 32, 4 workers: a new
+      epoch every 8 steps, served by the same persistent workers; before them, the workers started again);
 with the skipped steps by cause (GradScaler's overflows, non-finite steps). On the CPU also the issue's CPU
 target: the fit with 2 workers against the bare step loop on the same batches (aim ≥ 0.9×), and with 0 workers.
 Shards: built from `hauwm shards sample-data --clips 344` in a temporary directory, or --shards DIR.
