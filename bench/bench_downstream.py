@@ -95,12 +95,11 @@ def run(name: str, settings: dict, args: argparse.Namespace) -> None:
     print(f"   {name} done in {(time.perf_counter() - started) / 60:.1f} min", flush=True)
 
 
-def last_row(path: Path) -> dict[str, str] | None:
+def read_rows(path: Path) -> list[dict[str, str]]:
     if not path.exists():
-        return None
+        return []
     with path.open() as f:
-        rows = list(csv.DictReader(f))
-    return rows[-1] if rows else None
+        return list(csv.DictReader(f))
 
 
 def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[float, float, float]]) -> None:
@@ -112,18 +111,23 @@ def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[flo
     for name, (mean, std, success) in refs.items():
         print(f"{name + ' policy':<28} {'':>8} {mean:>12.1f} ± {std:<7.1f} {(mean - low) / (high - low):>11.2f} "
               f"{success:>8.0%}")
+    curves = []
     for name in names:
-        evaluation = last_row(args.logdir / name / "eval.csv")
-        if evaluation is None:
+        evaluations = read_rows(args.logdir / name / "eval.csv")
+        if not evaluations:
             print(f"{name:<28} (no evaluation yet)")
             continue
-        step_key = "update" if "update" in evaluation else "env_step"
-        train = last_row(args.logdir / name / "train.csv") or {}
+        evaluation, step_key = evaluations[-1], "update" if "update" in evaluations[-1] else "env_step"
+        train = (read_rows(args.logdir / name / "train.csv") or [{}])[-1]
         mean, std = float(evaluation["return"]), float(evaluation["return_std"])
         u = [f"{float(train[key]):>10.3g}" if train.get(key) else f"{'':>10}"
              for key in ("penalty_u_dataset", "penalty_u_imagined")]
         print(f"{name:<28} {step_key[0] + evaluation[step_key]:>8} {mean:>12.1f} ± {std:<7.1f} "
               f"{(mean - low) / (high - low):>11.2f} {float(evaluation.get('success_rate', 'nan')):>8.0%} {u[0]} {u[1]}")
+        curves.append(f"{name}: " + ", ".join(f"{row[step_key]}: {float(row['return']):.0f} "
+                                              f"({float(row.get('success_rate', 'nan')):.0%})" for row in evaluations))
+    print("\nevery evaluation, as updates (offline) or env steps (imitation): return (success rate)")
+    print("\n".join(curves))
 
 
 def main() -> int:
