@@ -75,6 +75,7 @@ def test_a_compiled_fit_follows_the_eager_one_and_validates_without_recompiling(
     val_batches = [batch_factory(batch_size=3, length=5, seed=9)]  # other shapes: validation runs eager
     eager = fit_losses(small_sizes, batches, val_batches, "off")
     torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()  # graphs of tests run before this one in the same process
     compiled_losses = fit_losses(small_sizes, batches, val_batches, "reduce-overhead")  # default mode on the CPU
     assert compiled_losses == pytest.approx(eager, rel=1e-4)
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 1  # one graph for 3 steps and 3 validations
