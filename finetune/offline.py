@@ -28,8 +28,8 @@ from finetune.config import FinetuneConfig
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
-from finetune.train import (CHECKPOINT, FinetuneError, build_agent, evaluate, exclusive, export_fingerprint,
-                            load_checkpoint, load_dataset, mean_metrics, next_multiple, resolve_device,
+from finetune.train import (CHECKPOINT, FinetuneError, build_agent, close_window, evaluate, exclusive,
+                            export_fingerprint, load_checkpoint, load_dataset, next_multiple, resolve_device,
                             save_checkpoint)
 from finetune.world_model import Latent
 
@@ -97,12 +97,9 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
         bar.update(1)
         updates = counters["updates"]
         if updates >= counters["next_log"] or updates >= cfg.steps:
-            now = time.perf_counter()
-            metrics = mean_metrics(window["metrics"])
-            metrics["updates_per_s"] = (updates - window["updates"]) / (now - window["time"])
+            metrics = close_window(window, updates)
             logger.write("train", updates, metrics)
             bar.set_postfix(model_loss=f"{metrics['model_loss']:.1f}", u=f"{metrics['penalty_u_imagined']:.3g}")
-            window = {"time": now, "updates": updates, "metrics": []}
             counters["next_log"] = next_multiple(updates, cfg.log_every)
         if updates >= counters["next_eval"] or updates >= cfg.steps:
             last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=cfg.seed + 10_000 + updates)

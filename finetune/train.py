@@ -172,6 +172,15 @@ def mean_metrics(window: list[dict[str, torch.Tensor]]) -> dict[str, float]:
     return {name: float(np.mean([row[i] for row in rows])) for i, name in enumerate(window[0])}
 
 
+def close_window(window: dict, updates: int) -> dict[str, float]:
+    """A log window's mean metrics and updates/s (`updates`: the update count now); the window starts again."""
+    now = time.perf_counter()
+    metrics = mean_metrics(window["metrics"])
+    metrics["updates_per_s"] = (updates - window["updates"]) / (now - window["time"])
+    window.update(time=now, updates=updates, metrics=[])
+    return metrics
+
+
 @contextlib.contextmanager
 def exclusive(logdir: Path) -> Iterator[None]:
     """Hold an exclusive lock on `logdir` (released when the run ends, also if it is killed): two runs
@@ -331,13 +340,10 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
             train_due()
 
         if counters["env_step"] >= counters["next_log"] and window["metrics"]:
-            now = time.perf_counter()
-            metrics = mean_metrics(window["metrics"])
-            metrics["updates_per_s"] = (counters["updates"] - window["updates"]) / (now - window["time"])
+            metrics = close_window(window, counters["updates"])
             metrics["updates"] = counters["updates"]
             logger.write("train", counters["env_step"], metrics)
             bar.set_postfix(updates_per_s=f"{metrics['updates_per_s']:.2f}", model_loss=f"{metrics['model_loss']:.1f}")
-            window = {"time": now, "updates": counters["updates"], "metrics": []}
             counters["next_log"] = next_multiple(counters["env_step"], cfg.log_every)
         eval_due = counters["env_step"] >= counters["next_eval"] or counters["env_step"] >= cfg.steps
         if eval_due or counters["env_step"] >= counters["next_checkpoint"]:

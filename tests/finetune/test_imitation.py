@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 
 import numpy as np
 import pytest
@@ -13,6 +12,7 @@ from finetune.discriminator import Discriminator
 from finetune.imitation import ImitationAgent, train_imitation
 from finetune.envs import make_env
 from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, FinetuneError, build_agent
+from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
 
 def test_discriminator_separates_expert_latents_from_random_ones_after_a_few_steps():
@@ -64,11 +64,6 @@ def imitation_config(tiny_config, logdir, steps, **extra):
                   eval_episodes=1, log_every=8, checkpoint_every=16, horizon=3, logdir=str(logdir))
     values.update(extra)
     return tiny_config(**values)
-
-
-def rows(path):
-    with path.open() as f:
-        return list(csv.DictReader(f))
 
 
 @pytest.fixture

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 
 import numpy as np
 import pytest
@@ -12,6 +11,7 @@ from finetune.config import ConfigError
 from finetune.offline import train_offline
 from finetune.penalty import uncertainty
 from finetune.train import CHECKPOINT, FinetuneError
+from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
 KINDS = ("loglik_std", "max_std", "mean_disagreement")
 
@@ -53,11 +53,6 @@ def offline_config(tiny_config, logdir, steps, **extra):
                   eval_episodes=1, log_every=1, checkpoint_every=2, logdir=str(logdir))
     values.update(extra)
     return tiny_config(**values)
-
-
-def rows(path):
-    with path.open() as f:
-        return list(csv.DictReader(f))
 
 
 @pytest.fixture

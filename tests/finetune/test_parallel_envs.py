@@ -3,7 +3,6 @@ their episodes apart, and the vector env resets an env inside the step that ends
 
 from __future__ import annotations
 
-import csv
 import os
 import subprocess
 import sys
@@ -16,6 +15,7 @@ from finetune.config import load_config
 from finetune.envs import make_env, opengl
 from finetune.envs.vector import make_vector_env
 from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, train
+from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
 # `configs/finetune/demo.yaml` with the tests' export (conftest.py), device cpu, 1 thread, recorded on main at
 # 073e62e (before num_envs and compile existed) on this project's development CPU (AMD EPYC, AVX2):
@@ -33,11 +33,6 @@ RECORDED = {
 }
 COLUMNS = {"episodes": ("env_step", "return"), "eval": ("env_step", "return"),
            "train": ("env_step", "updates", "model_loss", "actor_loss", "critic_loss", "imagined_return")}
-
-
-def rows(path):
-    with path.open() as f:
-        return list(csv.DictReader(f))
 
 
 def test_one_env_reproduces_the_figures_recorded_before_num_envs_existed(export_dir, tmp_path):
