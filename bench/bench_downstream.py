@@ -10,15 +10,18 @@ One command, in LOGDIR (default runs/bench_downstream), each step skipped when i
    episodes, noisy ones (the expert with N(0, σ²) action noise: the "medium" part), their merge (medexp),
    and ≤ 10 separate expert demonstrations for imitation;
 2. the random policy's and the expert's returns at the same env settings (10 episodes each);
-3. offline RL on medexp with the penalty, u = loglik_std, one run per λ of --lams (default 5 and 0), and
-   the same at the first λ with the frozen stream's disagreement added (one run per --frozen-weights w > 0);
+3. offline RL on medexp with the penalty u of --penalty (default loglik_std), one run per λ of --lams
+   (default 5 and 0), and the same at the first λ with the frozen stream's disagreement added (one run per
+   --frozen-weights w > 0);
 4. imitation from the demonstrations;
 5. a table: return over the last evaluation's 10 episodes (mean ± std), normalised between the random
    policy (0) and the scripted expert (1) measured here at the same settings (short episodes, so Table 4's
    500-step references do not apply), and the success rate; u on dataset vs imagined states.
 
 Runs resume from their checkpoints (a --logdir that holds a run goes on). Small networks for the CPU
-(CPU_SETTINGS below), fast rendering, action repeat 2, 100-step episodes (200 simulator steps).
+(CPU_SETTINGS below), fast rendering, action repeat 2, 100-step episodes (200 simulator steps). Other
+settings of `hauwm finetune` go to every run with --set KEY=VALUE; --tag names such a variant's runs
+(`offline_lam5-TAG`), so that they sit beside the default ones in the same --logdir.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 TASK = "metaworld_drawer_close"
 ENV = dict(action_repeat=2, time_limit=100, fast_render=True)
 CPU_SETTINGS = dict(batch_size=16, seq_len=16, units=200, hidden=100, log_every=50, device="cpu", threads=1, **ENV)
-OFFLINE = dict(paradigm="offline", model_heads=7, horizon=5, penalty="loglik_std")
+OFFLINE = dict(paradigm="offline", model_heads=7, horizon=5)
 IMITATION = dict(paradigm="imitation", horizon=15, prefill=1000, train_every=8, demo_fraction=0.5)
 
 
@@ -139,6 +142,9 @@ def main() -> int:
     p.add_argument("--imitation-steps", type=int, default=20_000, help="imitation env steps")
     p.add_argument("--lams", type=float, nargs="+", default=[5.0, 0.0],
                    help="λ of eq. 6: one offline run per value (a sweep; LOMPO's default is 5)")
+    p.add_argument("--penalty", default="loglik_std", choices=["loglik_std", "max_std", "mean_disagreement"],
+                   help="u of eq. 6 for the offline runs (finetune/penalty.py); runs of another than loglik_std are "
+                        "named offline_PENALTY_lamλ")
     p.add_argument("--frozen-weights", type=float, nargs="*", default=[],
                    help="extra offline runs at the first of --lams with the frozen disagreement's weight w > 0")
     p.add_argument("--expert-episodes", type=int, default=20)
@@ -147,9 +153,14 @@ def main() -> int:
     p.add_argument("--demos", type=int, default=10, help="expert demonstrations for imitation (≤ 10)")
     p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (and per reference)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a setting of hauwm finetune for every run (e.g. --set entropy_scale=1e-3); use with --tag")
+    p.add_argument("--tag", default="", help="suffix of this invocation's run names (a variant made with --set)")
     p.add_argument("--report", action="store_true", help="only print the table of what has run")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args()
+    from finetune.config import parse_override
+
     args.logdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("MINARI_DATASETS_PATH", str((args.logdir / "minari").resolve()))
     import torch
@@ -158,15 +169,20 @@ def main() -> int:
     ids = datasets(args) if not args.report else {"medexp": "bench/drawer_close-medexp-v0",
                                                    "demos": "bench/drawer_close-demos-v0"}
     every = max(1, args.updates // 4)
-    offline = {f"offline_lam{lam:g}": dict(penalty_scale=lam) for lam in args.lams}
-    offline.update({f"offline_lam{args.lams[0]:g}_frozen{w:g}": dict(penalty_scale=args.lams[0], penalty_frozen_weight=w)
+    overrides = dict(parse_override(text) for text in args.set)
+    tag = f"-{args.tag}" if args.tag else ""
+    kind = "" if args.penalty == "loglik_std" else f"_{args.penalty}"
+    offline = {f"offline{kind}_lam{lam:g}{tag}": dict(penalty_scale=lam) for lam in args.lams}
+    offline.update({f"offline{kind}_lam{args.lams[0]:g}_frozen{w:g}{tag}": dict(penalty_scale=args.lams[0],
+                                                                                penalty_frozen_weight=w)
                     for w in args.frozen_weights if w > 0})
     plans = {} if args.only == "imitation" else {
-        name: {**OFFLINE, **extra, "dataset": ids["medexp"], "steps": args.updates, "eval_every": every,
-               "checkpoint_every": every} for name, extra in offline.items()}
+        name: {**OFFLINE, **extra, "penalty": args.penalty, "dataset": ids["medexp"], "steps": args.updates,
+               "eval_every": every, "checkpoint_every": every, **overrides} for name, extra in offline.items()}
     if args.only != "offline":
-        plans["imitation"] = {**IMITATION, "demos": ids["demos"], "steps": args.imitation_steps,
-                              "eval_every": max(2000, args.imitation_steps // 5), "checkpoint_every": 2000}
+        plans[f"imitation{tag}"] = {**IMITATION, "demos": ids["demos"], "steps": args.imitation_steps,
+                                    "eval_every": max(2000, args.imitation_steps // 5), "checkpoint_every": 2000,
+                                    **overrides}
     if not args.report:
         for name, settings in plans.items():
             run(name, settings, args)
