@@ -380,7 +380,10 @@ class ResumableDataLoader(DataLoader):
             return None
         timed_out = str(error).startswith("DataLoader timed out")
         if (processes := self._worker_processes()) and not timed_out:
-            multiprocessing.connection.wait([process.sentinel for process in processes], timeout=5.0)
+            ended = multiprocessing.connection.wait([process.sentinel for process in processes], timeout=5.0)
+            for process in processes:  # a dying process closes its files (the sentinel) before it becomes a
+                if process.sentinel in ended:  # zombie that is_alive() sees: wait for that (a blocking waitpid)
+                    process.join()
         if (report := self._dead_workers_report()) or not torch_reports:
             return report
         reading = ", ".join(f"worker {worker} reading shard {self.dataset.reading(worker)}"

@@ -106,6 +106,26 @@ def test_a_worker_killed_while_the_trainer_waits_for_it_is_named_at_once(built_s
     assert time.monotonic() - started < 60
 
 
+def close_files_then_die() -> None:
+    os.closerange(3, 65536)  # the sentinel's write end too: the process reads "ended" while it still runs
+    time.sleep(1.0)
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def test_a_worker_whose_files_closed_before_it_ended_is_named(built_shards):
+    """A killed process closes its files (the batch connections, its sentinel) before it becomes a zombie that
+    `is_alive()` sees. Receiving a batch then fails with a reset connection while the worker still counts as
+    alive: the loader waits for the end, and reports the death, not the bare ConnectionResetError."""
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=1)
+    loader = make_dataloader(dataset)
+    dying = multiprocessing.get_context("fork").Process(target=close_files_then_die)
+    dying.start()
+    loader._worker_processes = lambda: [dying]  # as if it were the iterator's worker 0
+    report = loader._failure_report(ConnectionResetError(104, "Connection reset by peer"))
+    assert report is not None and report.startswith(f"DataLoader worker 0 (pid {dying.pid}) died while reading "
+                                                    f"shard (none yet): killed by SIGKILL")
+
+
 class KillWorker(lightning.Callback):
     """Kills one of the fit's loader workers with `signum` after training step `step`."""
 
