@@ -7,8 +7,8 @@
 One command, in LOGDIR (default runs/bench_downstream), each step skipped when its output is there:
 
 1. datasets (Minari, under LOGDIR/minari unless MINARI_DATASETS_PATH is set): clean scripted-expert
-   episodes, noisy ones (the expert with N(0, σ²) action noise: the "medium" part), their merge (medexp),
-   and ≤ 10 separate expert demonstrations for imitation;
+   episodes, noisy ones (the expert with N(0, σ²) action noise: the "medium" part), their merge (medexp;
+   with --random-episodes, random-policy episodes too), and ≤ 10 separate expert demonstrations;
 2. the random policy's and the expert's returns at the same env settings (10 episodes each);
 3. offline RL on medexp with the penalty u of --penalty (default loglik_std), one run per λ of --lams
    (default 5 and 0), and the same at the first λ with the frozen stream's disagreement added (one run per
@@ -45,24 +45,42 @@ OFFLINE = dict(paradigm="offline", model_heads=7, horizon=5)
 IMITATION = dict(paradigm="imitation", horizon=15, prefill=1000, train_every=8, demo_fraction=0.5)
 
 
+def variant(args: argparse.Namespace) -> str:
+    """What sets this invocation's medexp apart from the default one (σ 0.5, no random episodes): '' or
+    e.g. '1r20' (σ 1, 20 random episodes)."""
+    return ("" if args.noise == 0.5 else f"{args.noise:g}") + (f"r{args.random_episodes}" if args.random_episodes else "")
+
+
+def dataset_ids(args: argparse.Namespace) -> dict[str, str]:
+    """The datasets' ids; the noisy part names its σ, and medexp its variant, when they are not the default."""
+    sigma = "" if args.noise == 0.5 else f"{args.noise:g}"
+    return {"expert": "bench/drawer_close-expert-v0", "noisy": f"bench/drawer_close-noisy{sigma}-v0",
+            "random": "bench/drawer_close-random-v0", "medexp": f"bench/drawer_close-medexp{variant(args)}-v0",
+            "demos": "bench/drawer_close-demos-v0"}
+
+
 def datasets(args: argparse.Namespace) -> dict[str, str]:
     """Collect (or find) the four datasets; returns their ids."""
     from finetune.datasets import list_datasets
     from finetune.datasets.cli import main as datasets_cli
 
-    ids = {name: f"bench/drawer_close-{name}-v0" for name in ("expert", "noisy", "medexp", "demos")}
+    ids = dataset_ids(args)
     settings = [item for key, value in ENV.items() for item in ("--set", f"{key}={value}")]
     have = set(list_datasets())
     plans = {"expert": ["--policy", "expert", "--episodes", str(args.expert_episodes), "--seed", "0"],
              "noisy": ["--policy", "expert", "--action-noise", str(args.noise), "--episodes", str(args.noisy_episodes),
                        "--seed", "1"],
-             "demos": ["--policy", "expert", "--episodes", str(args.demos), "--seed", "2"]}
+             "demos": ["--policy", "expert", "--episodes", str(args.demos), "--seed", "2"],
+             "random": ["--policy", "random", "--episodes", str(args.random_episodes), "--seed", "3"]}
+    if not args.random_episodes:
+        del plans["random"]
     for name, plan in plans.items():
         if ids[name] not in have:
             command = ["collect", "--task", TASK, "--dataset-id", ids[name], *plan, *settings, "--no-progress"]
             if datasets_cli(command) != 0:
                 sys.exit(f"collecting {ids[name]} failed")
-    if ids["medexp"] not in have and datasets_cli(["merge", ids["noisy"], ids["expert"], "--out", ids["medexp"]]) != 0:
+    parts = [ids["noisy"], ids["expert"]] + ([ids["random"]] if args.random_episodes else [])
+    if ids["medexp"] not in have and datasets_cli(["merge", *parts, "--out", ids["medexp"], "--no-progress"]) != 0:
         sys.exit("merging medexp failed")
     return ids
 
@@ -149,7 +167,10 @@ def main() -> int:
                    help="extra offline runs at the first of --lams with the frozen disagreement's weight w > 0")
     p.add_argument("--expert-episodes", type=int, default=20)
     p.add_argument("--noisy-episodes", type=int, default=40)
-    p.add_argument("--noise", type=float, default=0.5, help="σ of the noisy expert's action noise")
+    p.add_argument("--noise", type=float, default=0.5, help="σ of the noisy expert's action noise; another than 0.5 makes its own "
+                                                                "datasets and offline runs (-medexpσ)")
+    p.add_argument("--random-episodes", type=int, default=0,
+                   help="random-policy episodes added to medexp (its own datasets and runs, -medexp…rN)")
     p.add_argument("--demos", type=int, default=10, help="expert demonstrations for imitation (≤ 10)")
     p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (and per reference)")
     p.add_argument("--seed", type=int, default=0)
@@ -166,11 +187,11 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(1)
-    ids = datasets(args) if not args.report else {"medexp": "bench/drawer_close-medexp-v0",
-                                                   "demos": "bench/drawer_close-demos-v0"}
+    ids = datasets(args) if not args.report else dataset_ids(args)
     every = max(1, args.updates // 4)
     overrides = dict(parse_override(text) for text in args.set)
-    tag = f"-{args.tag}" if args.tag else ""
+    user_tag = f"-{args.tag}" if args.tag else ""
+    tag = (f"-medexp{variant(args)}" if variant(args) else "") + user_tag  # offline runs: their dataset too
     kind = "" if args.penalty == "loglik_std" else f"_{args.penalty}"
     offline = {f"offline{kind}_lam{lam:g}{tag}": dict(penalty_scale=lam) for lam in args.lams}
     offline.update({f"offline{kind}_lam{args.lams[0]:g}_frozen{w:g}{tag}": dict(penalty_scale=args.lams[0],
@@ -180,7 +201,7 @@ def main() -> int:
         name: {**OFFLINE, **extra, "penalty": args.penalty, "dataset": ids["medexp"], "steps": args.updates,
                "eval_every": every, "checkpoint_every": every, **overrides} for name, extra in offline.items()}
     if args.only != "offline":
-        plans[f"imitation{tag}"] = {**IMITATION, "demos": ids["demos"], "steps": args.imitation_steps,
+        plans[f"imitation{user_tag}"] = {**IMITATION, "demos": ids["demos"], "steps": args.imitation_steps,
                                     "eval_every": max(2000, args.imitation_steps // 5), "checkpoint_every": 2000,
                                     **overrides}
     if not args.report:
