@@ -1,0 +1,99 @@
+"""Why an offline run fails: does eq. 6's penalty see where its actor leaves the data? (CPU, a minute)
+
+    python bench/bench_offline_diagnosis.py RUNDIR --pretrained DIR [--heldout ID]
+
+Reads the run's checkpoint (RUNDIR/checkpoint.pt, config.yaml) and, on windows of its training dataset and
+of a held-out dataset of the same task (default: bench_downstream's 10 expert demonstrations, episodes the
+run never saw), prints:
+
+1. the world model's losses on both (is the model overfitting the fixed dataset?);
+2. on the held-out windows, the actor's actions (its mode at each posterior state) against the actions
+   recorded there: mean |a_π − a_data| and how often |a_π| ≥ 0.99;
+3. the penalty u (the run's `penalty`, finetune/penalty.py) of one imagined step from the same posterior
+   states with the recorded actions and with the actor's: if u does not grow where the actor deviates,
+   eq. 6 cannot hold it near the data, whatever λ.
+
+Needs the run's MINARI_DATASETS_PATH (bench_downstream: LOGDIR/minari).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from finetune.config import load_config  # noqa: E402
+from finetune.offline import OfflineAgent  # noqa: E402
+from finetune.replay import Replay  # noqa: E402
+from finetune.train import build_agent, export_fingerprint, load_checkpoint, load_dataset  # noqa: E402
+
+MODEL_METRICS = ("model_loss", "recon_nll", "reward_nll", "kl")
+
+
+def windows(dataset_id: str, cfg, action_dim: int, count: int, seed: int) -> list[dict[str, torch.Tensor]]:
+    """`count` replay batches (cfg.batch_size windows of cfg.seq_len steps) of a dataset, as tensors."""
+    replay = Replay(None, cfg.replay_capacity, np.random.default_rng(seed))
+    for episode in load_dataset(dataset_id, cfg, action_dim, "--heldout"):
+        replay.add(episode)
+    return [{key: torch.as_tensor(value) for key, value in replay.sample(cfg.batch_size, cfg.seq_len).items()}
+            for _ in range(count)]
+
+
+@torch.no_grad()
+def diagnose(agent: OfflineAgent, batches: list[dict[str, torch.Tensor]]) -> dict[str, float]:
+    """Means over `batches` of the model's losses, the actor's deviation from the recorded actions, and u of
+    one imagined step with either."""
+    sums: dict[str, float] = {}
+    for batch in batches:
+        _, start, metrics = agent.world_model.loss(batch)  # start: posterior states [B, L, ·]
+        recorded = batch["action"]  # [B, L, A]; entry t + 1 is the action taken at state t
+        mode = agent.behavior.actor(agent.world_model.feature(start)).mode  # the actor at each state [B, L, A]
+        actor = torch.cat([recorded[:, :1], mode[:, :-1]], 1)  # the same layout: entry t + 1 acts at state t
+        values = {name: float(metrics[name]) for name in MODEL_METRICS}
+        values["action_gap"] = float((mode[:, :-1] - recorded[:, 1:]).abs().mean())
+        values["actor_at_bound"] = float((mode.abs() >= 0.99).float().mean())
+        for name, actions in (("u_recorded_actions", recorded), ("u_actor_actions", actor)):
+            agent.penalty.measure_dataset(start, actions)
+            values[name] = float(agent.penalty.metrics["penalty_u_dataset"])
+        for name, value in values.items():
+            sums[name] = sums.get(name, 0.0) + value / len(batches)
+    return sums
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", type=Path, help="an offline run's logdir (checkpoint.pt, config.yaml)")
+    p.add_argument("--pretrained", required=True, help="the export the run was trained on")
+    p.add_argument("--heldout", default="bench/drawer_close-demos-v0", help="a dataset of the same task")
+    p.add_argument("--batches", type=int, default=8)
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    cfg = load_config(args.run / "config.yaml", {"device": "cpu"})
+    if cfg.paradigm != "offline":
+        sys.exit(f"{args.run}: an offline run is needed, this one is {cfg.paradigm!r}")
+    from finetune.envs import make_env
+
+    env = make_env(cfg.task, seed=cfg.seed, action_repeat=cfg.action_repeat, fast_render=cfg.fast_render, time_limit=cfg.time_limit)
+    action_dim = env.action_space.shape[0]
+    env.close()
+    agent = build_agent(cfg, action_dim, args.pretrained, torch.device("cpu"), OfflineAgent)
+    counters = load_checkpoint(args.run / "checkpoint.pt", agent, cfg, export_fingerprint(args.pretrained))
+    agent.eval()
+    print(f"{args.run} at {counters['updates']} updates: penalty {cfg.penalty}, λ {cfg.penalty_scale:g}; "
+          f"{args.batches} batches of {cfg.batch_size} × {cfg.seq_len} per dataset")
+    results = {"training dataset": diagnose(agent, windows(cfg.dataset, cfg, action_dim, args.batches, 1)),
+               "held-out": diagnose(agent, windows(args.heldout, cfg, action_dim, args.batches, 2))}
+    names = list(next(iter(results.values())))
+    print(f"{'':<20}" + "".join(f"{name:>20}" for name in results))
+    for name in names:
+        print(f"{name:<20}" + "".join(f"{values[name]:>20.3f}" for values in results.values()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
