@@ -22,6 +22,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "compile": ("auto", "off", "default", "reduce-overhead"),
     "imagine_heads": ("random", "mean"),
     "penalty": PENALTIES,
+    "expert_latents": ("imagined", "posterior"),
 }
 
 
@@ -92,6 +93,7 @@ class FinetuneConfig:
     demo_fraction: float = 0.5  # share of each world-model batch drawn from the demonstrations
     disc_lr: float = 8e-5  # discriminator Adam (VMAIL)
     disc_gp_scale: float = 10.0  # weight of its input-space gradient penalty (WGAN-GP / DAC)
+    expert_latents: str = "imagined"  # expert pairs: imagined along the demos' actions, or their posteriors (VMAIL)
 
     def __post_init__(self) -> None:
         for name, allowed in CHOICES.items():

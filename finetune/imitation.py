@@ -7,11 +7,23 @@ replay, and per-episode reseeding. Every update:
 1. the world model (new stream with its decoder) is fitted on a batch whose last `demo_fraction` of
    windows are expert demonstrations and the rest the agent's own episodes, with no reward loss: the
    environment's reward is never learned from (it is still logged: episodes.csv, eval.csv);
-2. the posterior features of the demonstration windows, z_t = [ŝ_t; s̃_t] (the frozen encoder and streams,
-   through the world model's observe), with the actions the expert took there are the expert pairs;
+2. the expert pairs (z_t, a_t): the actions the expert took, with the latents z_t = [ŝ_t; s̃_t] that the world
+   model imagines along them from the posterior state of each demonstration window's first frame (the
+   frozen encoder and streams, through the world model's observe), `expert_latents: imagined`; or, as
+   VMAIL, the demonstrations' posterior latents themselves (`expert_latents: posterior`);
 3. the actor-critic learns in imagination from every posterior state of the batch, as online, with the
    discriminator's logit ℓ(z_t, a_t) as the reward (finetune/discriminator.py says why that form);
 4. the discriminator takes one step on those expert pairs against the imagined policy pairs.
+
+Why imagined expert latents: the policy's pairs can only be imagined ones, and imagined latents differ from
+posterior ones whatever the actions (no frame corrects them; the frozen stream rolls its ensemble mean).
+Trained on posterior expert pairs, the discriminator learned that difference, not the expert's behaviour:
+on drawer close it called the expert's own actions, imagined from the expert's states, "policy" from the
+first imagined step on (logit +2.5 on the posterior, −1.1 one step later, −5.3 ten steps later,
+and the actor's own actions the same within 0.25;
+bench/bench_imitation_diagnosis.py). Imagined along the demonstrations, both sides of D carry the same
+imagination drift over the same depths (L − 1 = H steps by default), and what tells them apart is the
+actions and where they lead.
 
 Evaluation, logs, checkpoints (which hold the discriminator and its optimiser) and resume are the online
 loop's; a run resumed from a checkpoint taken at an episode's end continues exactly.
@@ -30,6 +42,7 @@ from finetune.discriminator import Discriminator
 from finetune.replay import Replay
 from finetune.train import FinetuneError, LoopHooks, exclusive, load_dataset, run
 from finetune.world_model import Latent, RewardFn, Rollout
+from model.rssm import RSSMState
 
 
 class MixedReplay:
@@ -52,6 +65,24 @@ class MixedReplay:
         own = self.own.sample(batch_size - self.demos_per_batch, length)
         demos = self.demos.sample(self.demos_per_batch, length)
         return {key: np.concatenate([own[key], demos[key]]) for key in own}
+
+
+class RecordedActions:
+    """A policy for WorldModel.imagine that plays recorded actions [H, N, A], one step per call: it is its own
+    action distribution, whose sample is the recorded action and whose entropy is 0."""
+
+    def __init__(self, actions: torch.Tensor):
+        self.actions, self.step = actions, 0
+
+    def __call__(self, feat: torch.Tensor) -> RecordedActions:
+        return self
+
+    def rsample(self) -> torch.Tensor:
+        self.step += 1
+        return self.actions[self.step - 1]
+
+    def entropy(self) -> torch.Tensor:
+        return self.actions.new_zeros(self.actions.shape[1])
 
 
 def demos_per_batch(cfg: FinetuneConfig) -> int:
@@ -79,6 +110,7 @@ class ImitationAgent(Agent):
         self.discriminator = Discriminator(self.world_model.feature_dim, action_dim, cfg.units, cfg.layer_norm,
                                            cfg.disc_lr, cfg.disc_gp_scale, cfg.grad_clip)
         self.demos_per_batch = demos_per_batch(cfg)
+        self.imagine_expert = cfg.expert_latents == "imagined"
         self.expert: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's expert pairs
         self.policy: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's imagined pairs
 
@@ -97,10 +129,19 @@ class ImitationAgent(Agent):
 
     def imagined_reward(self, batch: dict[str, torch.Tensor], start: Latent) -> RewardFn:
         demos = slice(batch["action"].shape[0] - self.demos_per_batch, None)
-        with torch.no_grad():
-            feats = self.world_model.feature(start)[demos, :-1]  # z_t of the demonstrations [B_d, L−1, F]
-        self.expert = (feats, batch["action"][demos, 1:])  # with a_t, the action taken at z_t
+        actions = batch["action"][demos, 1:]  # a_t, the action the expert took at step t [B_d, L−1, A]
+        self.expert = (self.expert_latents(start, demos, actions), actions)
         return self.discriminator_reward
+
+    @torch.no_grad()
+    def expert_latents(self, start: Latent, demos: slice, actions: torch.Tensor) -> torch.Tensor:
+        """z_t for t = 0..L−2 of the demonstration windows [B_d, L−1, F]: imagined along the expert's `actions`
+        from each window's first posterior state, or the posterior states themselves (`expert_latents`)."""
+        if not self.imagine_expert:
+            return self.world_model.feature(start)[demos, :-1]
+        first = Latent(*(None if s is None else RSSMState(s.deter[demos, :1], s.stoch[demos, :1]) for s in start))
+        feats, _, _ = self.world_model.imagine(first, RecordedActions(actions.transpose(0, 1)), actions.shape[1] - 1)
+        return feats.transpose(0, 1)  # [L−1, B_d, F] → [B_d, L−1, F]
 
     def discriminator_reward(self, rollout: Rollout) -> torch.Tensor:
         """r_t = ℓ(z_t, a_t) for t = 0..H−1; keeps the (detached) pairs for the discriminator's step."""

@@ -100,6 +100,37 @@ def test_imitation_run_learns_from_no_env_reward_and_a_resumed_run_continues_exa
     assert not all(torch.equal(fresh[key], first["agent"][key]) for key in decoder)  # the rest did learn
 
 
+@pytest.mark.parametrize("kind", ["imagined", "posterior"])
+def test_expert_pairs_are_imagined_along_the_demonstrations_actions_or_are_their_posteriors(
+        export_dir, tiny_config, tmp_path, random_episodes, kind):
+    cfg = imitation_config(tiny_config, tmp_path, 16, expert_latents=kind)
+    torch.manual_seed(0)
+    agent = build_agent(cfg, 4, export_dir, torch.device("cpu"), ImitationAgent)
+    episodes = random_episodes(cfg.batch_size, cfg.seq_len - 1, 4, seed=3)
+    batch = {key: torch.as_tensor(np.stack([episode[key] for episode in episodes])) for key in ("obs", "action")}
+    with torch.no_grad():
+        _, start, _ = agent.world_model.loss({**batch, "reward": torch.zeros(batch["action"].shape[:2])})
+    demos = slice(cfg.batch_size - agent.demos_per_batch, None)
+    actions = batch["action"][demos, 1:]
+    posterior = agent.world_model.feature(start)[demos, :-1]  # [B_d, L − 1, F]
+
+    def expert(actions):
+        torch.manual_seed(1)  # the same draws in imagination
+        return agent.expert_latents(start, demos, actions)
+
+    feats = expert(actions)
+    assert feats.shape == posterior.shape
+    if kind == "posterior":
+        assert torch.equal(feats, posterior)
+        return
+    assert torch.equal(feats[:, 0], posterior[:, 0])  # imagination starts at the window's first posterior state
+    assert not torch.allclose(feats[:, 1:], posterior[:, 1:])
+    assert torch.equal(expert(actions), feats)
+    new = slice(-agent.world_model.rssm.feature_dim, None)  # the new stream: the one that reads the actions
+    other = expert(-actions)
+    assert torch.equal(other[:, 0], feats[:, 0]) and not torch.allclose(other[:, 1:, new], feats[:, 1:, new])
+
+
 def test_bad_imitation_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_demos):
     with pytest.raises(ConfigError, match="demo_fraction must lie strictly between 0 and 1"):
         imitation_config(tiny_config, tmp_path, 16, demo_fraction=1.0)
