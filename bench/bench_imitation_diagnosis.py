@@ -61,7 +61,9 @@ def main() -> int:
     args = p.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    cfg = load_config(args.run / "config.yaml", {"device": "cpu"})
+    written = yaml.safe_load((args.run / "config.yaml").read_text())
+    kind = written.get("expert_latents", "posterior")  # a run from before the setting had posterior expert pairs
+    cfg = load_config(args.run / "config.yaml", {"device": "cpu", "expert_latents": kind})
     if cfg.paradigm != "imitation":
         sys.exit(f"{args.run}: an imitation run is needed, this one is {cfg.paradigm!r}")
     demos = load_dataset(cfg.demos, cfg, None, "--demos")
@@ -78,9 +80,7 @@ def main() -> int:
     steps = cfg.seq_len - 1
     expert = imagined_pairs(agent, first, RecordedActions(recorded.transpose(0, 1)), steps)
     actor = imagined_pairs(agent, first, agent.behavior.actor, steps)
-    written = yaml.safe_load((args.run / "config.yaml").read_text())  # a run older than the setting had posterior
-    kind = written.get("expert_latents", "posterior (a run from before the setting)")
-    print(f"{args.run} at {counters['env_step']} env steps (expert_latents: {kind}); "
+    print(f"{args.run} at {counters['env_step']} env steps (expert_latents: {cfg.expert_latents}); "
           f"{args.windows} demonstration windows of {cfg.seq_len} steps")
     print(f"posterior expert pairs: logit (called expert) "
           f"{judged(logit(agent.world_model.feature(start)[:, :-1], recorded))}")

@@ -19,11 +19,11 @@ Why imagined expert latents: the policy's pairs can only be imagined ones, and i
 posterior ones whatever the actions (no frame corrects them; the frozen stream rolls its ensemble mean).
 Trained on posterior expert pairs, the discriminator learned that difference, not the expert's behaviour:
 on drawer close it called the expert's own actions, imagined from the expert's states, "policy" from the
-first imagined step on (logit +2.5 on the posterior, −1.1 one step later, −5.3 ten steps later,
-and the actor's own actions the same within 0.25;
-bench/bench_imitation_diagnosis.py). Imagined along the demonstrations, both sides of D carry the same
-imagination drift over the same depths (L − 1 = H steps by default), and what tells them apart is the
-actions and where they lead.
+first imagined step on (logit +2.5 on the posterior, −1.1 one step later, −5.3 ten steps later), and gave
+the actor's actions there the same logits within 0.25 (bench/bench_imitation_diagnosis.py). Imagined
+along the demonstrations, both sides of D carry the same imagination drift over the same depths (L − 1 = H
+steps by default), and what tells them apart is the actions and where they lead. A checkpoint from before
+this setting resumes only with `expert_latents: posterior`.
 
 Evaluation, logs, checkpoints (which hold the discriminator and its optimiser) and resume are the online
 loop's; a run resumed from a checkpoint taken at an episode's end continues exactly.

@@ -130,9 +130,12 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the same export or use another --logdir")
     newer = {"paradigm": "online", "model_heads": 1, "dataset": None, "demos": None}  # what older checkpoints had
+    if cfg.paradigm == "imitation":
+        newer["expert_latents"] = "posterior"
     for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm", *newer):
-        if state["config"].get(key, newer.get(key)) != getattr(cfg, key):  # .get: a checkpoint older than the setting
-            raise FinetuneError(f"{path} was written by a run with {key}={state['config'].get(key)!r}, this run has "
+        written = state["config"].get(key, newer.get(key))  # .get: a checkpoint older than the setting
+        if written != getattr(cfg, key):
+            raise FinetuneError(f"{path} was written by a run with {key}={written!r}, this run has "
                                 f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
     missing, unexpected = agent.load_state_dict(state["agent"], strict=False)
     missing = [k for k in missing if not k.startswith("world_model.frozen.")]

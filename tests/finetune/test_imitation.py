@@ -131,6 +131,18 @@ def test_expert_pairs_are_imagined_along_the_demonstrations_actions_or_are_their
     assert torch.equal(other[:, 0], feats[:, 0]) and not torch.allclose(other[:, 1:, new], feats[:, 1:, new])
 
 
+def test_a_run_resumes_only_with_the_expert_latents_it_was_trained_with(export_dir, tiny_config, tmp_path, two_demos):
+    train_imitation(imitation_config(tiny_config, tmp_path, 16, expert_latents="posterior"), export_dir, progress=False)
+    with pytest.raises(FinetuneError, match="expert_latents='posterior', this run has expert_latents='imagined'"):
+        train_imitation(imitation_config(tiny_config, tmp_path, 32), export_dir, progress=False)
+    state = torch.load(tmp_path / CHECKPOINT, weights_only=True)
+    del state["config"]["expert_latents"]  # as written before the setting existed: posterior expert pairs
+    torch.save(state, tmp_path / CHECKPOINT)
+    with pytest.raises(FinetuneError, match="expert_latents='posterior', this run has expert_latents='imagined'"):
+        train_imitation(imitation_config(tiny_config, tmp_path, 32), export_dir, progress=False)
+    train_imitation(imitation_config(tiny_config, tmp_path, 32, expert_latents="posterior"), export_dir, progress=False)
+
+
 def test_bad_imitation_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_demos):
     with pytest.raises(ConfigError, match="demo_fraction must lie strictly between 0 and 1"):
         imitation_config(tiny_config, tmp_path, 16, demo_fraction=1.0)
