@@ -45,22 +45,27 @@ OFFLINE = dict(paradigm="offline", model_heads=7, horizon=5)
 IMITATION = dict(paradigm="imitation", horizon=15, prefill=1000, train_every=8, demo_fraction=0.5)
 
 
+def noise_tag(args: argparse.Namespace) -> str:
+    """'' for the default σ 0.5 of the noisy part, else σ (e.g. '1')."""
+    return "" if args.noise == 0.5 else f"{args.noise:g}"
+
+
 def variant(args: argparse.Namespace) -> str:
     """What sets this invocation's medexp apart from the default one (σ 0.5, no random episodes): '' or
     e.g. '1r20' (σ 1, 20 random episodes)."""
-    return ("" if args.noise == 0.5 else f"{args.noise:g}") + (f"r{args.random_episodes}" if args.random_episodes else "")
+    return noise_tag(args) + (f"r{args.random_episodes}" if args.random_episodes else "")
 
 
 def dataset_ids(args: argparse.Namespace) -> dict[str, str]:
     """The datasets' ids; the noisy part names its σ, and medexp its variant, when they are not the default."""
-    sigma = "" if args.noise == 0.5 else f"{args.noise:g}"
-    return {"expert": "bench/drawer_close-expert-v0", "noisy": f"bench/drawer_close-noisy{sigma}-v0",
+    return {"expert": "bench/drawer_close-expert-v0", "noisy": f"bench/drawer_close-noisy{noise_tag(args)}-v0",
             "random": "bench/drawer_close-random-v0", "medexp": f"bench/drawer_close-medexp{variant(args)}-v0",
             "demos": "bench/drawer_close-demos-v0"}
 
 
 def datasets(args: argparse.Namespace) -> dict[str, str]:
-    """Collect (or find) the four datasets; returns their ids."""
+    """Collect (or find) the datasets (expert, noisy, demos, random with --random-episodes) and merge medexp;
+    returns their ids."""
     from finetune.datasets import list_datasets
     from finetune.datasets.cli import main as datasets_cli
 
@@ -167,8 +172,9 @@ def main() -> int:
                    help="extra offline runs at the first of --lams with the frozen disagreement's weight w > 0")
     p.add_argument("--expert-episodes", type=int, default=20)
     p.add_argument("--noisy-episodes", type=int, default=40)
-    p.add_argument("--noise", type=float, default=0.5, help="σ of the noisy expert's action noise; another than 0.5 makes its own "
-                                                                "datasets and offline runs (-medexpσ)")
+    p.add_argument("--noise", type=float, default=0.5,
+                   help="σ of the noisy expert's action noise; another than 0.5 makes its own datasets and offline "
+                        "runs (-medexpσ)")
     p.add_argument("--random-episodes", type=int, default=0,
                    help="random-policy episodes added to medexp (its own datasets and runs, -medexp…rN)")
     p.add_argument("--demos", type=int, default=10, help="expert demonstrations for imitation (≤ 10)")
