@@ -32,7 +32,6 @@ from finetune.imitation import ImitationAgent, RecordedActions  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
 from finetune.train import build_agent, export_fingerprint, load_checkpoint, load_dataset  # noqa: E402
 from finetune.world_model import Latent  # noqa: E402
-from model.rssm import RSSMState  # noqa: E402
 
 
 def judged(logits: torch.Tensor) -> str:
@@ -76,7 +75,7 @@ def main() -> int:
     _, start, _ = agent.world_model.loss(batch)  # posterior states [B, L, ·]
     recorded = batch["action"][:, 1:]  # a_t, taken at state t [B, L − 1, A]
     logit = agent.discriminator.logit
-    first = Latent(*(None if s is None else RSSMState(s.deter[:, :1], s.stoch[:, :1]) for s in start))
+    first = start.map(lambda x: x[:, :1])
     steps = cfg.seq_len - 1
     expert = imagined_pairs(agent, first, RecordedActions(recorded.transpose(0, 1)), steps)
     actor = imagined_pairs(agent, first, agent.behavior.actor, steps)

@@ -24,7 +24,6 @@ from torch import nn
 from finetune.behavior import ActorCritic
 from finetune.config import FinetuneConfig
 from finetune.world_model import Latent, RewardFn, WorldModel, no_param_grads
-from model.rssm import RSSMState
 
 COMPILE_MODES = ("default", "reduce-overhead")
 
@@ -122,7 +121,7 @@ class Agent(nn.Module):
         mask = torch.as_tensor(done, device=self.device)[:, None]  # [B, 1]
         def keep(x: torch.Tensor) -> torch.Tensor:
             return torch.where(mask, torch.zeros_like(x), x)
-        restarted = Latent(*(None if s is None else RSSMState(keep(s.deter), keep(s.stoch)) for s in latent))
+        restarted = latent.map(keep)
         return restarted, keep(prev_action)
 
     @torch.no_grad()
@@ -133,7 +132,7 @@ class Agent(nn.Module):
         obs_t = torch.as_tensor(obs, device=self.device)
         latent, action = self._regions["policy_step"](obs_t, latent, prev_action, explore)
         if self.compile_mode is not None:  # own copies: a CUDA graph's outputs are overwritten by its next run
-            latent = Latent(*(None if s is None else RSSMState(s.deter.clone(), s.stoch.clone()) for s in latent))
+            latent = latent.map(torch.Tensor.clone)
             action = action.clone()
         return action.cpu().numpy(), latent, action
 

@@ -42,7 +42,6 @@ from finetune.discriminator import Discriminator
 from finetune.replay import Replay
 from finetune.train import FinetuneError, LoopHooks, exclusive, load_dataset, run
 from finetune.world_model import Latent, RewardFn, Rollout
-from model.rssm import RSSMState
 
 
 class MixedReplay:
@@ -139,7 +138,7 @@ class ImitationAgent(Agent):
         from each window's first posterior state, or the posterior states themselves (`expert_latents`)."""
         if not self.imagine_expert:
             return self.world_model.feature(start)[demos, :-1]
-        first = Latent(*(None if s is None else RSSMState(s.deter[demos, :1], s.stoch[demos, :1]) for s in start))
+        first = start.map(lambda x: x[demos, :1])
         feats, _, _ = self.world_model.imagine(first, RecordedActions(actions.transpose(0, 1)), actions.shape[1] - 1)
         return feats.transpose(0, 1)  # [L−1, B_d, F] → [B_d, L−1, F]
 

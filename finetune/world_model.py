@@ -81,6 +81,10 @@ class Latent(NamedTuple):
     frozen: RSSMState | None
     new: RSSMState
 
+    def map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> Latent:
+        """`fn` applied to every tensor (deter and stoch of both streams), e.g. a slice or `.detach()`."""
+        return Latent(*(None if s is None else RSSMState(fn(s.deter), fn(s.stoch)) for s in self))
+
 
 @contextlib.contextmanager
 def no_param_grads(*modules: nn.Module) -> Iterator[None]:
@@ -213,8 +217,7 @@ class WorldModel(nn.Module):
         loss.backward()
         metrics["model_grad_norm"] = nn.utils.clip_grad_norm_(self.trainable_parameters(), self.grad_clip)
         self.optimizer.step()
-        detached = Latent(*(None if s is None else RSSMState(s.deter.detach(), s.stoch.detach()) for s in latent))
-        return detached, metrics
+        return latent.map(torch.Tensor.detach), metrics
 
     # -- acting and imagining -----------------------------------------------------------------------
 
@@ -256,7 +259,7 @@ class WorldModel(nn.Module):
         new stream's transitions and the reward, whose own parameters record no gradient here (the world
         model's are trained by the model loss only; a reward function guards its own).
         """
-        flat = Latent(*(None if s is None else RSSMState(s.deter.flatten(0, 1), s.stoch.flatten(0, 1)) for s in start))
+        flat = start.map(lambda x: x.flatten(0, 1))
         frozen, new = flat
         feats, new_feats, entropies = [self.feature(flat)], [], []
         actions, stochs, means, stds, frozen_means = [], [], [], [], []
