@@ -3,6 +3,7 @@
     python bench/bench_downstream.py --pretrained DIR                          # everything, hours on a CPU
     python bench/bench_downstream.py --pretrained DIR --only offline --updates 600
     python bench/bench_downstream.py --pretrained DIR --report                 # the table of finished runs
+    python bench/bench_downstream.py --pretrained DIR --report --runs offline_lam0 offline_lam50 --final-episodes 50
 
 One command, in LOGDIR (default runs/bench_downstream), each step skipped when its output is there:
 
@@ -16,7 +17,10 @@ One command, in LOGDIR (default runs/bench_downstream), each step skipped when i
 4. imitation from the demonstrations;
 5. a table: return over the last evaluation's 10 episodes (mean ± std), normalised between the random
    policy (0) and the scripted expert (1) measured here at the same settings (short episodes, so Table 4's
-   500-step references do not apply), and the success rate; u on dataset vs imagined states.
+   500-step references do not apply), and the success rate; u on dataset vs imagined states;
+6. with --final-episodes N: every run's last checkpoint and both references played again for N episodes,
+   all from the same env seed (the same goal placements), since 10 episodes tell 30% from 40% success
+   poorly (a binomial standard error of 15 points).
 
 Runs resume from their checkpoints (a --logdir that holds a run goes on). Small networks for the CPU
 (CPU_SETTINGS below), fast rendering, action repeat 2, 100-step episodes (200 simulator steps). Other
@@ -156,6 +160,37 @@ def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[flo
     print("\n".join(curves))
 
 
+def final_report(args: argparse.Namespace, names: list[str]) -> None:
+    """Each run's last checkpoint and both references, --final-episodes episodes each from one env seed."""
+    from finetune.envs import make_env
+    from finetune.train import evaluate, load_trained
+
+    episodes, seed = args.final_episodes, args.seed + 20_000
+    refs = references(episodes, seed)
+    low, high = refs["random"][0], refs["expert"][0]
+    print(f"\nlast checkpoints played again: {episodes} episodes each, env seed {seed} for all")
+    print(f"{'run':<28} {'at':>8} {'return':>20} {'normalised':>11} {'success':>8} {'± s.e.':>7}")
+
+    def row(name: str, at: str, mean: float, std: float, success: float) -> None:
+        stderr = (success * (1 - success) / episodes) ** 0.5
+        print(f"{name:<28} {at:>8} {mean:>10.1f} ± {std:<7.1f} {(mean - low) / (high - low):>11.2f} "
+              f"{success:>8.0%} {stderr:>7.0%}", flush=True)
+
+    for name, (mean, std, success) in refs.items():
+        row(name + " policy", "", mean, std, success)
+    for name in names:
+        logdir = args.logdir / name
+        if not (logdir / "checkpoint.pt").exists():
+            print(f"{name:<28} (no checkpoint yet)")
+            continue
+        env = make_env(TASK, seed=seed, **ENV)
+        cfg, agent, counters = load_trained(logdir, args.pretrained, env.action_space.shape[0])
+        result = evaluate(agent, env, episodes, TASK, seed=seed)
+        env.close()
+        at = f"u{counters['updates']}" if cfg.paradigm == "offline" else f"e{counters['env_step']}"
+        row(name, at, result["return"], result["return_std"], result["success_rate"])
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--pretrained", required=True, help="export of `hauwm pretrain export` (e.g. make demo's)")
@@ -184,6 +219,9 @@ def main() -> int:
                    help="a setting of hauwm finetune for every run (e.g. --set entropy_scale=1e-3); use with --tag")
     p.add_argument("--tag", default="", help="suffix of this invocation's run names (a variant made with --set)")
     p.add_argument("--report", action="store_true", help="only print the table of what has run")
+    p.add_argument("--runs", nargs="+", help="with --report: these run directories of LOGDIR instead of the planned ones")
+    p.add_argument("--final-episodes", type=int, default=0,
+                   help="play every run's last checkpoint and the references again for this many episodes")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args()
     from finetune.config import parse_override
@@ -213,7 +251,10 @@ def main() -> int:
     if not args.report:
         for name, settings in plans.items():
             run(name, settings, args)
-    report(args, list(plans), references(args.eval_episodes, args.seed + 10_000))
+    names = args.runs if args.report and args.runs else list(plans)
+    report(args, names, references(args.eval_episodes, args.seed + 10_000))
+    if args.final_episodes:
+        final_report(args, names)
     return 0
 
 

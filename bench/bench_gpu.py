@@ -19,6 +19,9 @@ warm-up (whole epochs for short epochs), on
       epoch every 8 steps, served by the same persistent workers; before them, the workers started again);
 with the skipped steps by cause (GradScaler's overflows, non-finite steps). On the CPU also the issue's CPU
 target: the fit with 2 workers against the bare step loop on the same batches (aim ≥ 0.9×), and with 0 workers.
+A shared CPU host drifts by more than that margin within minutes, so on the CPU every fit is bracketed: the
+bare eager loop is timed again right after it, each fit is compared with the mean of the bare runs just before
+and just after, and the whole sequence runs --rounds times (default 3) with the median ratio printed last.
 Shards: built from `hauwm shards sample-data --clips 344` in a temporary directory, or --shards DIR.
 """
 
@@ -31,6 +34,7 @@ import math
 import os
 import platform
 import resource
+import statistics
 import sys
 import tempfile
 import time
@@ -200,12 +204,13 @@ def whole_epochs(steps: int, per_epoch: int) -> int:
     return math.ceil(steps / per_epoch) * per_epoch
 
 
-def real_fit(config: Path, shards: Path, workers: int, max_steps: int, precision: str, root: Path,
+def real_fit(config: Path, shards: Path, workers: int, max_steps: int, precision: str, log_every: int, root: Path,
              device: torch.device) -> dict:
     """`hauwm pretrain fit` (model.cli's LightningCLI) on one device → steps/s after the warm-up and more."""
     reset(device)
     args = ["fit", "--config", str(config), "--data.shards", str(shards), "--data.num_workers", str(workers),
             "--trainer.precision", precision, "--trainer.max_steps", str(max_steps), "--trainer.devices", "1",
+            "--trainer.log_every_n_steps", str(log_every),
             "--trainer.strategy", "auto", "--trainer.limit_val_batches", "0", "--trainer.enable_progress_bar",
             "false", "--trainer.enable_model_summary", "false", "--trainer.default_root_dir", str(root),
             "--trainer.callbacks+=bench_gpu.StepTimer"]
@@ -225,11 +230,13 @@ def main() -> None:
     parser.add_argument("--device", choices=["cuda", "cpu"], default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--shards", type=Path, default=None, help=f"default: build {SAMPLE_CLIPS} sample clips")
     parser.add_argument("--lengths", type=int, nargs="+", default=None, help="bare-step L (GPU: 16 50; CPU: 12)")
-    parser.add_argument("--steps", type=int, default=None, help="timed bare steps (GPU: 40; CPU: 8)")
-    parser.add_argument("--fit-steps", type=int, default=None, help="fit steps, long epochs (GPU: 500; CPU: 40)")
+    parser.add_argument("--steps", type=int, default=None, help="timed bare steps (GPU: 40; CPU: 16)")
+    parser.add_argument("--fit-steps", type=int, default=None, help="fit steps, long epochs (GPU: 500; CPU: 80)")
     parser.add_argument("--workers", type=int, default=None, help="fit DataLoader workers (GPU: 4; CPU: 2)")
     parser.add_argument("--precision", default=None, help="default: the config's (16-mixed on GPU, 32-true on CPU)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--log-every", type=int, default=None, help="fit's log_every_n_steps (default: the config's)")
+    parser.add_argument("--rounds", type=int, default=None, help="times the fits run (GPU: 1; CPU: 3, each bracketed)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -243,10 +250,12 @@ def main() -> None:
                 "precision": args.precision or loaded["trainer"]["precision"]}
     batch_size, k_max = loaded["data"]["batch_size"], loaded["data"]["k_max"]
     lengths = args.lengths or ([16, 50] if gpu else [12])
-    steps = args.steps or (40 if gpu else 8)
-    fit_steps = args.fit_steps or (500 if gpu else 40)
+    steps = args.steps or (40 if gpu else 16)
+    fit_steps = args.fit_steps or (500 if gpu else 80)
     workers = args.workers if args.workers is not None else (4 if gpu else 2)
     compile_mode = "reduce-overhead" if gpu else "default"
+    rounds = args.rounds or (1 if gpu else 3)
+    log_every = args.log_every or loaded["trainer"]["log_every_n_steps"]
     fit_length = loaded["data"]["seq_len"]
 
     print(f"machine: {machine(device)}")
@@ -255,8 +264,8 @@ def main() -> None:
           f"batch {batch_size}, K_max {k_max}), "
           f"{settings['precision']}, compiled = model.compile {compile_mode}; bare: L {lengths}, "
           f"{WARM_UP} warm-up + {steps} timed steps; fit: L {fit_length}, model.compile "
-          f"{loaded['model'].get('compile', 'off')}, {workers} workers, log every "
-          f"{loaded['trainer']['log_every_n_steps']} steps; {torch.get_num_threads()} torch threads", flush=True)
+          f"{loaded['model'].get('compile', 'off')}, {workers} workers, log every {log_every} steps; "
+          f"{torch.get_num_threads()} torch threads", flush=True)
     work = Path(tempfile.mkdtemp(prefix="bench-gpu-"))
     started = time.perf_counter()
     shards = args.shards or sample_shards(work)
@@ -281,20 +290,38 @@ def main() -> None:
         runs.append(("(a) long epochs", long_epochs, 0, fit_steps))
     runs.append(("(b) short epochs", shards, workers, short_steps))
     print(f"\n{'real fit':<18} {'workers':>7} {'steps/epoch':>11} {'timed steps':>11} {'steps/s':>8} "
-          f"{'1st step s':>10} {'scaler skips':>12} {'non-finite':>10} {'peak GiB':>9}")
-    fits = {}
-    for index, (label, directory, fit_workers, max_steps) in enumerate(runs):
-        result = fits[label, fit_workers] = real_fit(config, directory, fit_workers, max_steps,
-                                                     settings["precision"], work / f"fit-{index}", device)
-        print(f"{label:<18} {fit_workers:>7} {result['steps_per_epoch']:>11} {result['timed_steps']:>11} "
-              f"{result['steps_per_s']:8.2f} {result['first_step_s']:10.1f} {result['scaler_skips']:>12} "
-              f"{result['nonfinite_steps']:>10} {result['peak_gib']:9.2f}", flush=True)
+          f"{'1st step s':>10} {'scaler skips':>12} {'non-finite':>10} {'peak GiB':>9}"
+          f" {'× bare':>9}" + ("" if gpu else f" {'bare ms':>8}  (the bare loop re-timed after each fit)"))
+    reference_mode = compile_mode if gpu else "off"
+    reference = bare.get((fit_length, reference_mode))
+    if reference is not None and not gpu:  # timed again just before the first fit, as after every fit
+        fit_batches = load_batches(shards, batch_size, fit_length, k_max, 4, device)
+        reference = bare_steps(settings, fit_batches, "off", steps, device)
+    fit_ratios, runs_done = [], []
+    for round_index in range(rounds):
+        for index, (label, directory, fit_workers, max_steps) in enumerate(runs):
+            result = real_fit(config, directory, fit_workers, max_steps, settings["precision"], log_every,
+                              work / f"fit-{round_index}-{index}", device)
+            ratio_text = ""
+            if reference is not None:
+                after = reference if gpu else bare_steps(settings, fit_batches, "off", steps, device)  # bracket on a CPU
+                ratio = result["steps_per_s"] / ((reference["steps_per_s"] + after["steps_per_s"]) / 2)
+                fit_ratios.append(((label, fit_workers), ratio))
+                ratio_text = f" {ratio:8.2f}×" + ("" if gpu else f" {after['ms']:8.1f}")
+                reference = after
+            if (label, fit_workers) not in runs_done:
+                runs_done.append((label, fit_workers))
+            print(f"{label:<18} {fit_workers:>7} {result['steps_per_epoch']:>11} {result['timed_steps']:>11} "
+                  f"{result['steps_per_s']:8.2f} {result['first_step_s']:10.1f} {result['scaler_skips']:>12} "
+                  f"{result['nonfinite_steps']:>10} {result['peak_gib']:9.2f}{ratio_text}", flush=True)
 
-    reference = bare[fit_length, compile_mode if gpu else "off"] if fit_length in lengths else None
-    if reference is not None:
+    if fit_length in lengths:
         kind = "bare compiled step (aim ≥ 0.8×)" if gpu else "bare eager step loop on the same batches (aim ≥ 0.9×)"
-        for (label, fit_workers), result in fits.items():
-            print(f"{label}, {fit_workers} workers: {result['steps_per_s'] / reference['steps_per_s']:.2f}× the {kind}")
+        for label, fit_workers in runs_done:
+            ratios = [ratio for key, ratio in fit_ratios if key == (label, fit_workers)]
+            shown = ", ".join(f"{ratio:.2f}" for ratio in ratios)
+            print(f"{label}, {fit_workers} workers: {statistics.median(ratios):.2f}× the {kind}"
+                  + (f" (median of {shown})" if len(ratios) > 1 else ""))
     print(f"\nwall time {time.perf_counter() - started:.0f} s; load average {os.getloadavg()[0]:.1f} at the end")
 
 

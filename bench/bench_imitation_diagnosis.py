@@ -23,14 +23,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from finetune.config import load_config  # noqa: E402
 from finetune.imitation import ImitationAgent, RecordedActions  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
-from finetune.train import build_agent, export_fingerprint, load_checkpoint, load_dataset  # noqa: E402
+from finetune.train import load_dataset, load_trained  # noqa: E402
 from finetune.world_model import Latent  # noqa: E402
 
 
@@ -60,14 +59,11 @@ def main() -> int:
     args = p.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    written = yaml.safe_load((args.run / "config.yaml").read_text())
-    kind = written.get("expert_latents", "posterior")  # a run from before the setting had posterior expert pairs
-    cfg = load_config(args.run / "config.yaml", {"device": "cpu", "expert_latents": kind})
+    cfg = load_config(args.run / "config.yaml")
     if cfg.paradigm != "imitation":
         sys.exit(f"{args.run}: an imitation run is needed, this one is {cfg.paradigm!r}")
     demos = load_dataset(cfg.demos, cfg, None, "--demos")
-    agent = build_agent(cfg, demos[0]["action"].shape[-1], args.pretrained, torch.device("cpu"), ImitationAgent)
-    counters = load_checkpoint(args.run / "checkpoint.pt", agent, cfg, export_fingerprint(args.pretrained))
+    cfg, agent, counters = load_trained(args.run, args.pretrained, demos[0]["action"].shape[-1])
     replay = Replay(None, cfg.replay_capacity, np.random.default_rng(1))
     for episode in demos:
         replay.add(episode)

@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from finetune.config import load_config  # noqa: E402
 from finetune.offline import OfflineAgent  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
-from finetune.train import build_agent, export_fingerprint, load_checkpoint, load_dataset  # noqa: E402
+from finetune.train import load_dataset, load_trained  # noqa: E402
 
 MODEL_METRICS = ("model_loss", "recon_nll", "reward_nll", "kl")
 
@@ -82,9 +82,7 @@ def main() -> int:
                    time_limit=cfg.time_limit)
     action_dim = env.action_space.shape[0]
     env.close()
-    agent = build_agent(cfg, action_dim, args.pretrained, torch.device("cpu"), OfflineAgent)
-    counters = load_checkpoint(args.run / "checkpoint.pt", agent, cfg, export_fingerprint(args.pretrained))
-    agent.eval()
+    cfg, agent, counters = load_trained(args.run, args.pretrained, action_dim)
     print(f"{args.run} at {counters['updates']} updates: penalty {cfg.penalty}, λ {cfg.penalty_scale:g}; "
           f"{args.batches} batches of {cfg.batch_size} × {cfg.seq_len} per dataset")
     results = {"training dataset": diagnose(agent, windows(cfg.dataset, cfg, action_dim, args.batches, 1)),

@@ -148,6 +148,30 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
     return dict(state["counters"])
 
 
+def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int) -> tuple[FinetuneConfig, Agent, dict[str, int]]:
+    """A run's agent (online, offline or imitation, as its config says) as its last checkpoint left it, on the
+    CPU in eval mode: (the run's config, the agent, its counters); for benches and diagnoses."""
+    from finetune.config import load_config
+    from finetune.imitation import ImitationAgent
+    from finetune.offline import OfflineAgent
+
+    logdir = Path(logdir)
+    for name in ("config.yaml", CHECKPOINT):
+        if not (logdir / name).is_file():
+            raise FinetuneError(f"{logdir} holds no {name}: not a run directory, or a run that has not checkpointed yet")
+    overrides: dict[str, object] = {"device": "cpu"}
+    written = yaml.safe_load((logdir / "config.yaml").read_text())
+    if written.get("paradigm") == "imitation" and "expert_latents" not in written:
+        overrides["expert_latents"] = "posterior"  # a run from before the setting (as load_checkpoint reads it)
+    cfg = load_config(logdir / "config.yaml", overrides)
+    agent_class = {"online": Agent, "offline": OfflineAgent, "imitation": ImitationAgent}[cfg.paradigm]
+    hauwm = pretrained if cfg.agent == "hauwm" else None
+    agent = build_agent(cfg, action_dim, hauwm, torch.device("cpu"), agent_class)
+    counters = load_checkpoint(logdir / CHECKPOINT, agent, cfg, export_fingerprint(hauwm))
+    agent.eval()
+    return cfg, agent, counters
+
+
 def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None) -> dict[str, float]:
     """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate.
     `seed` reseeds the env first (the same episodes whenever this evaluation is run again, e.g. after resume)."""

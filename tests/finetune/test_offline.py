@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from finetune.config import ConfigError
-from finetune.offline import train_offline
+from finetune.offline import OfflineAgent, train_offline
 from finetune.penalty import uncertainty
-from finetune.train import CHECKPOINT, FinetuneError
+from finetune.train import CHECKPOINT, FinetuneError, load_trained
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
 KINDS = ("loglik_std", "max_std", "mean_disagreement")
@@ -79,6 +79,13 @@ def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir,
     for key in ("penalty_u_dataset", "penalty_u_imagined", "frozen_disagreement_dataset",
                 "frozen_disagreement_imagined", "imagined_model_reward"):
         assert np.isfinite(float(train[-1][key])), key
+
+    cfg, agent, counters = load_trained(tmp_path / "whole", export_dir, action_dim=4)  # what benches evaluate
+    assert isinstance(agent, OfflineAgent) and not agent.training and counters == first["counters"]
+    assert cfg.penalty_scale == offline_config(tiny_config, tmp_path, 4).penalty_scale
+    assert all(torch.equal(value, agent.trainable_state_dict()[key]) for key, value in first["agent"].items())
+    with pytest.raises(FinetuneError, match="holds no config.yaml"):
+        load_trained(tmp_path / "nothing", export_dir, action_dim=4)
 
     minari_dataset("test/other-v0", random_episodes(2, 12, 4, seed=5), "metaworld_drawer_close")
     with pytest.raises(FinetuneError, match="dataset='test/two-episodes-v0'"):  # a run directory of another dataset

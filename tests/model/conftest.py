@@ -16,8 +16,10 @@ TINY_CONFIG = REPO / "configs" / "pretrain" / "tiny.yaml"
 # model sizes small enough for unit tests (the tiny.yaml sizes are used by the CLI runs)
 SMALL = WorldModelConfig(cnn_width=8, embed_dim=32, deter=24, stoch=6, hidden=24, ensemble=3, temporal_dim=8)
 # a short run over built_shards: validation has 3 clips, train 18 (5 shards), all with ≥ 24 frames
+# (logged every step, which the tests read; tiny.yaml itself logs every 10)
 RUN_ARGS = ["--data.batch_size", "3", "--data.seq_len", "8", "--data.num_workers", "0", "--data.val_batches", "1",
-            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false"]
+            "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false",
+            "--trainer.log_every_n_steps", "1"]
 RUN_STEPS = 40
 # the world_model section of tiny.yaml (min_std and max_std left at their defaults)
 TINY_SIZES = WorldModelConfig(cnn_width=8, embed_dim=64, deter=64, stoch=16, hidden=64, ensemble=7, temporal_dim=16)

@@ -193,6 +193,17 @@ def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_logging_every_n_steps_logs_every_term_and_counter_at_those_steps(built_shards, tmp_path):
+    root = tmp_path / "every3"
+    assert fit(built_shards, root, "--trainer.log_every_n_steps", "3", "--trainer.max_steps", "7",
+               "--trainer.val_check_interval", "7") == 0
+    events = EventAccumulator(str(next((root / "lightning_logs").glob("version_*"))), size_guidance={"scalars": 0})
+    events.Reload()
+    for tag in ("train/loss", "train/lambda", "train/scaler_skips", "train/nonfinite_steps"):
+        assert [event.step for event in events.Scalars(tag)] == [2, 5], tag  # steps 3 and 6, counted from 0
+    assert scalars(root, "train/nonfinite_steps")[-1] == 0
+
+
 def test_16_mixed_asked_on_a_cpu_trains_in_bf16_mixed_with_float32_distributions(built_shards, tmp_path, capsys):
     """The GPU's 16-mixed path has a CPU equivalent: the CLI switches to bf16-mixed, says so, and training
     stays finite with the distribution parameters in float32 under autocast."""
