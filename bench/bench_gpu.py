@@ -297,7 +297,7 @@ def main() -> None:
     if reference is not None and not gpu:  # timed again just before the first fit, as after every fit
         fit_batches = load_batches(shards, batch_size, fit_length, k_max, 4, device)
         reference = bare_steps(settings, fit_batches, "off", steps, device)
-    fit_ratios, runs_done = [], []
+    ratios: dict[tuple[str, int], list[float]] = {}  # (run, workers) → each round's fit / bare steps/s
     for round_index in range(rounds):
         for index, (label, directory, fit_workers, max_steps) in enumerate(runs):
             result = real_fit(config, directory, fit_workers, max_steps, settings["precision"], log_every,
@@ -306,22 +306,18 @@ def main() -> None:
             if reference is not None:
                 after = reference if gpu else bare_steps(settings, fit_batches, "off", steps, device)  # bracket on a CPU
                 ratio = result["steps_per_s"] / ((reference["steps_per_s"] + after["steps_per_s"]) / 2)
-                fit_ratios.append(((label, fit_workers), ratio))
+                ratios.setdefault((label, fit_workers), []).append(ratio)
                 ratio_text = f" {ratio:8.2f}×" + ("" if gpu else f" {after['ms']:8.1f}")
                 reference = after
-            if (label, fit_workers) not in runs_done:
-                runs_done.append((label, fit_workers))
             print(f"{label:<18} {fit_workers:>7} {result['steps_per_epoch']:>11} {result['timed_steps']:>11} "
                   f"{result['steps_per_s']:8.2f} {result['first_step_s']:10.1f} {result['scaler_skips']:>12} "
                   f"{result['nonfinite_steps']:>10} {result['peak_gib']:9.2f}{ratio_text}", flush=True)
 
-    if fit_length in lengths:
-        kind = "bare compiled step (aim ≥ 0.8×)" if gpu else "bare eager step loop on the same batches (aim ≥ 0.9×)"
-        for label, fit_workers in runs_done:
-            ratios = [ratio for key, ratio in fit_ratios if key == (label, fit_workers)]
-            shown = ", ".join(f"{ratio:.2f}" for ratio in ratios)
-            print(f"{label}, {fit_workers} workers: {statistics.median(ratios):.2f}× the {kind}"
-                  + (f" (median of {shown})" if len(ratios) > 1 else ""))
+    kind = "bare compiled step (aim ≥ 0.8×)" if gpu else "bare eager step loop on the same batches (aim ≥ 0.9×)"
+    for (label, fit_workers), values in ratios.items():
+        shown = ", ".join(f"{ratio:.2f}" for ratio in values)
+        print(f"{label}, {fit_workers} workers: {statistics.median(values):.2f}× the {kind}"
+              + (f" (median of {shown})" if len(values) > 1 else ""))
     print(f"\nwall time {time.perf_counter() - started:.0f} s; load average {os.getloadavg()[0]:.1f} at the end")
 
 

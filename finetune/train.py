@@ -277,8 +277,8 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     (logdir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
 
     # a resumed run reseeds from its progress, so it does not replay the same random streams; with hooks.reseed
-    # each episode is seeded from its index instead, in the envs of a fresh run (Meta-World draws its 50 goal
-    # placements from the seed an env is made with). Env i of num_envs gets its own seeds (env 0 a single env's).
+    # each episode is seeded from its index instead, in the envs of a fresh run. Env i of num_envs gets its own
+    # seeds (env 0 a single env's).
     progress_seed = 0 if hooks.reseed else counters["episodes"]
     seeds = [cfg.seed + progress_seed + ENV_SEED_STRIDE * i for i in range(cfg.num_envs)]
     eval_env = make_env(cfg.task, seed=cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]), **env_kwargs)

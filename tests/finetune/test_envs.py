@@ -103,6 +103,23 @@ def test_full_metaworld_episode_is_truncated_at_500_steps(envs_to_close):
     assert 0 < episode_return < 5000  # Meta-World rewards are 0-10 per step
 
 
+def test_metaworld_draws_a_fresh_placement_every_reset_from_its_seed(envs_to_close):
+    """Not one of MT1's 50 placements fixed at construction (APV's `_freeze_rand_vec = False`), reproducibly."""
+    def drawer_positions(seed: int, resets: int) -> list[float]:
+        env = make_env("metaworld_drawer_close", seed=seed, fast_render=True)
+        envs_to_close.append(env)
+        positions = []
+        for index in range(resets):
+            env.reset(seed=seed if index == 0 else None)
+            positions.append(float(env.state[4]))  # the drawer's x: the placement
+        return positions
+
+    first = drawer_positions(3, 60)
+    assert len(set(first)) == 60 and min(first) < -0.05 < 0.05 < max(first)  # more than MT1's 50, both sides
+    assert drawer_positions(3, 60) == first
+    assert drawer_positions(4, 3) != first[:3]
+
+
 def test_metaworld_time_limit_beyond_its_path_length_fails_clearly():
     with pytest.raises(ValueError, match="500-step episodes"):
         make_env("metaworld_dial_turn", seed=0, time_limit=501)
