@@ -148,9 +148,10 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
     return dict(state["counters"])
 
 
-def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int) -> tuple[FinetuneConfig, Agent, dict[str, int]]:
-    """A run's agent (online, offline or imitation, as its config says) as its last checkpoint left it, on the
-    CPU in eval mode: (the run's config, the agent, its counters); for benches and diagnoses."""
+def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
+                 device: torch.device = torch.device("cpu")) -> tuple[FinetuneConfig, Agent, dict[str, int]]:
+    """A run's agent (online, offline or imitation, as its config says) as its last checkpoint left it, in eval
+    mode: (the run's config, the agent, its counters); to play it (datasets) and for benches and diagnoses."""
     from finetune.config import load_config
     from finetune.imitation import ImitationAgent
     from finetune.offline import OfflineAgent
@@ -159,14 +160,14 @@ def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int) -
     for name in ("config.yaml", CHECKPOINT):
         if not (logdir / name).is_file():
             raise FinetuneError(f"{logdir} holds no {name}: not a run directory, or a run that has not checkpointed yet")
-    overrides: dict[str, object] = {"device": "cpu"}
+    overrides: dict[str, object] = {"device": str(device)}
     written = yaml.safe_load((logdir / "config.yaml").read_text())
     if written.get("paradigm") == "imitation" and "expert_latents" not in written:
         overrides["expert_latents"] = "posterior"  # a run from before the setting (as load_checkpoint reads it)
     cfg = load_config(logdir / "config.yaml", overrides)
     agent_class = {"online": Agent, "offline": OfflineAgent, "imitation": ImitationAgent}[cfg.paradigm]
     hauwm = pretrained if cfg.agent == "hauwm" else None
-    agent = build_agent(cfg, action_dim, hauwm, torch.device("cpu"), agent_class)
+    agent = build_agent(cfg, action_dim, hauwm, device, agent_class)
     counters = load_checkpoint(logdir / CHECKPOINT, agent, cfg, export_fingerprint(hauwm))
     agent.eval()
     return cfg, agent, counters

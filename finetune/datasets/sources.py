@@ -71,14 +71,12 @@ class ExpertPolicy:
 def load_agent_policy(rundir: str | Path, pretrained: str | Path | None, device: str, explore: bool,
                       action_dim: int) -> AgentPolicy:
     """The agent of a `hauwm finetune` run (RUNDIR/config.yaml + RUNDIR/checkpoint.pt) as a policy."""
-    from finetune.train import CHECKPOINT, build_agent, export_fingerprint, load_checkpoint, resolve_device
+    from finetune.train import FinetuneError, load_trained, resolve_device
 
-    cfg = run_config(rundir)
-    checkpoint = Path(rundir) / CHECKPOINT
-    if not checkpoint.is_file():
-        raise DatasetError(f"--checkpoint {rundir}: no {CHECKPOINT} there yet (the run has not saved one)")
-    agent = build_agent(cfg, action_dim, pretrained, resolve_device(device))
-    load_checkpoint(checkpoint, agent, cfg, export_fingerprint(pretrained if cfg.agent == "hauwm" else None))
+    try:
+        _, agent, _ = load_trained(Path(rundir), pretrained, action_dim, resolve_device(device))
+    except FinetuneError as error:
+        raise DatasetError(f"--checkpoint {rundir}: {error}") from None
     return AgentPolicy(agent, explore)
 
 
