@@ -22,6 +22,14 @@ One command, in LOGDIR (default runs/bench_downstream), each step skipped when i
    all from the same env seed (the same goal placements), since 10 episodes tell 30% from 40% success
    poorly (a binomial standard error of 15 points).
 
+On a GPU, the repeat on a DMC task (no scripted expert there): an online run first, whose replay is the
+medium part and whose agent plays the expert part and the demonstrations (`--from-run`), then the same
+runs at Table 3 sizes (`--gpu`; several calls of under 10 minutes each, as every step resumes):
+
+    python bench/bench_learning.py --gpu --agent hauwm --pretrained DIR --logdir runs/cheetah
+    python bench/bench_downstream.py --gpu --from-run runs/cheetah --pretrained DIR --lams 50 0 \
+        --updates 1500 --imitation-steps 20000 --logdir runs/bench_downstream_dmc --final-episodes 20
+
 Runs resume from their checkpoints (a --logdir that holds a run goes on). Small networks for the CPU
 (CPU_SETTINGS below), fast rendering, action repeat 2, 100-step episodes (200 simulator steps). Other
 settings of `hauwm finetune` go to every run with --set KEY=VALUE; --tag names such a variant's runs
@@ -42,9 +50,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-TASK = "metaworld_drawer_close"
+TASK = "metaworld_drawer_close"  # without --from-run: Meta-World's scripted expert makes the data free
 ENV = dict(action_repeat=2, time_limit=100, fast_render=True)
-CPU_SETTINGS = dict(batch_size=16, seq_len=16, units=200, hidden=100, log_every=50, device="cpu", threads=1, **ENV)
+CPU_SETTINGS = dict(batch_size=16, seq_len=16, units=200, hidden=100, log_every=50, device="cpu", threads=1)
+GPU_SETTINGS = dict(device="cuda", log_every=250)  # Table 3 sizes (FinetuneConfig's defaults), compiled updates
 OFFLINE = dict(paradigm="offline", model_heads=7, horizon=5)
 IMITATION = dict(paradigm="imitation", horizon=15, prefill=1000, train_every=8, demo_fraction=0.5)
 
@@ -61,10 +70,14 @@ def variant(args: argparse.Namespace) -> str:
 
 
 def dataset_ids(args: argparse.Namespace) -> dict[str, str]:
-    """The datasets' ids; the noisy part names its σ, and medexp its variant, when they are not the default."""
-    return {"expert": "bench/drawer_close-expert-v0", "noisy": f"bench/drawer_close-noisy{noise_tag(args)}-v0",
-            "random": "bench/drawer_close-random-v0", "medexp": f"bench/drawer_close-medexp{variant(args)}-v0",
-            "demos": "bench/drawer_close-demos-v0"}
+    """The datasets' ids; the noisy part names its σ, and medexp its variant, when they are not the default.
+    With --from-run the medium part is the run's replay and the expert its agent."""
+    name = args.task.split("_", 1)[1]  # drawer_close, cheetah_run
+    medium = "replay" if args.from_run else f"noisy{noise_tag(args)}"
+    expert = "agent" if args.from_run else "expert"
+    return {"expert": f"bench/{name}-{expert}-v0", "medium": f"bench/{name}-{medium}-v0",
+            "random": f"bench/{name}-random-v0", "medexp": f"bench/{name}-medexp{variant(args)}-v0",
+            "demos": f"bench/{name}-{'agentdemos' if args.from_run else 'demos'}-v0"}
 
 
 def datasets(args: argparse.Namespace) -> dict[str, str]:
@@ -74,40 +87,53 @@ def datasets(args: argparse.Namespace) -> dict[str, str]:
     from finetune.datasets.cli import main as datasets_cli
 
     ids = dataset_ids(args)
-    settings = [item for key, value in ENV.items() for item in ("--set", f"{key}={value}")]
+    task = ["--task", args.task, *[item for key, value in args.env.items() if value is not None
+                                   for item in ("--set", f"{key}={value}")]]
+    if args.from_run:  # the run's replay, and its agent's episodes (the run's env settings come with it)
+        agent = ["--policy", "agent", "--checkpoint", str(args.from_run), "--pretrained", str(args.pretrained),
+                 "--device", args.sizes["device"]]
+        plans = {"expert": [*agent, "--episodes", str(args.expert_episodes), "--seed", "0"],
+                 "medium": ["--from-run", str(args.from_run)],
+                 "demos": [*agent, "--episodes", str(args.demos), "--seed", "2"]}
+    else:
+        plans = {"expert": [*task, "--policy", "expert", "--episodes", str(args.expert_episodes), "--seed", "0"],
+                 "medium": [*task, "--policy", "expert", "--action-noise", str(args.noise), "--episodes",
+                            str(args.noisy_episodes), "--seed", "1"],
+                 "demos": [*task, "--policy", "expert", "--episodes", str(args.demos), "--seed", "2"]}
+    if args.random_episodes:
+        plans["random"] = [*task, "--policy", "random", "--episodes", str(args.random_episodes), "--seed", "3"]
     have = set(list_datasets())
-    plans = {"expert": ["--policy", "expert", "--episodes", str(args.expert_episodes), "--seed", "0"],
-             "noisy": ["--policy", "expert", "--action-noise", str(args.noise), "--episodes", str(args.noisy_episodes),
-                       "--seed", "1"],
-             "demos": ["--policy", "expert", "--episodes", str(args.demos), "--seed", "2"],
-             "random": ["--policy", "random", "--episodes", str(args.random_episodes), "--seed", "3"]}
-    if not args.random_episodes:
-        del plans["random"]
     for name, plan in plans.items():
         if ids[name] not in have:
-            command = ["collect", "--task", TASK, "--dataset-id", ids[name], *plan, *settings, "--no-progress"]
-            if datasets_cli(command) != 0:
+            if datasets_cli(["collect", "--dataset-id", ids[name], *plan, "--no-progress"]) != 0:
                 sys.exit(f"collecting {ids[name]} failed")
-    parts = [ids["noisy"], ids["expert"]] + ([ids["random"]] if args.random_episodes else [])
+    parts = [ids["medium"], ids["expert"]] + ([ids["random"]] if args.random_episodes else [])
     if ids["medexp"] not in have and datasets_cli(["merge", *parts, "--out", ids["medexp"], "--no-progress"]) != 0:
         sys.exit("merging medexp failed")
     return ids
 
 
-def references(episodes: int, seed: int) -> dict[str, tuple[float, float, float]]:
-    """(mean return, its std, success rate) of the random policy and the scripted expert, `episodes` each."""
-    from finetune.datasets.sources import ExpertPolicy, RandomPolicy
+def references(args: argparse.Namespace, episodes: int, seed: int) -> dict[str, tuple[float, float, float]]:
+    """(mean return, its std, success rate) of the random policy and the expert (Meta-World's scripted one, or
+    with --from-run the run's agent), `episodes` each."""
+    from finetune.datasets.sources import ExpertPolicy, RandomPolicy, load_agent_policy
     from finetune.envs import make_env
     from finetune.rollout import play_episode
 
     result = {}
     for name in ("random", "expert"):
-        env = make_env(TASK, seed=seed, **ENV)
+        env = make_env(args.task, seed=seed, **args.env)
         env.action_space.seed(seed)
-        policy = RandomPolicy(env.action_space) if name == "random" else ExpertPolicy(env, 0.0, seed)
+        if name == "random":
+            policy = RandomPolicy(env.action_space)
+        elif args.from_run:
+            policy = load_agent_policy(args.from_run, args.pretrained, args.sizes["device"], False, env.action_space.shape[0])
+        else:
+            policy = ExpertPolicy(env, 0.0, seed)
         played = [play_episode(env, policy, seed=seed if i == 0 else None) for i in range(episodes)]
         returns = [float(p["reward"].sum(dtype=np.float64)) for p in played]
-        result[name] = (float(np.mean(returns)), float(np.std(returns)), float(np.mean([p["success"].any() for p in played])))
+        successes = [p["success"].any() for p in played if "success" in p] or [float("nan")]  # DMC: no success
+        result[name] = (float(np.mean(returns)), float(np.std(returns)), float(np.mean(successes)))
         env.close()
     return result
 
@@ -117,8 +143,8 @@ def run(name: str, settings: dict, args: argparse.Namespace) -> None:
     from finetune.imitation import train_imitation
     from finetune.offline import train_offline
 
-    cfg = load_config(None, {**CPU_SETTINGS, "task": TASK, "seed": args.seed, "logdir": str(args.logdir / name),
-                             "eval_episodes": args.eval_episodes, **settings})
+    cfg = load_config(None, {**args.sizes, **args.env, "task": args.task, "seed": args.seed,
+                             "logdir": str(args.logdir / name), "eval_episodes": args.eval_episodes, **settings})
     started = time.perf_counter()
     print(f"== {name}: {cfg.steps} {'updates' if cfg.paradigm == 'offline' else 'env steps'}", flush=True)
     (train_offline if cfg.paradigm == "offline" else train_imitation)(cfg, args.pretrained, progress=not args.no_progress)
@@ -135,7 +161,7 @@ def read_rows(path: Path) -> list[dict[str, str]]:
 def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[float, float, float]]) -> None:
     low, high = refs["random"][0], refs["expert"][0]
     print(f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; "
-          f"task {TASK}, {ENV}, seed {args.seed}")
+          f"task {args.task}, {args.env}, seed {args.seed}")
     print(f"{'run':<28} {'at':>8} {f'return ({args.eval_episodes} episodes)':>22} {'normalised':>11} {'success':>8} "
           f"{'u dataset':>10} {'u imagined':>11}")
     for name, (mean, std, success) in refs.items():
@@ -166,7 +192,7 @@ def final_report(args: argparse.Namespace, names: list[str]) -> None:
     from finetune.train import evaluate, load_trained
 
     episodes, seed = args.final_episodes, args.seed + 20_000
-    refs = references(episodes, seed)
+    refs = references(args, episodes, seed)
     low, high = refs["random"][0], refs["expert"][0]
     print(f"\nlast checkpoints played again: {episodes} episodes each, env seed {seed} for all")
     print(f"{'run':<28} {'at':>8} {'return':>20} {'normalised':>11} {'success':>8} {'± s.e.':>7}")
@@ -183,12 +209,12 @@ def final_report(args: argparse.Namespace, names: list[str]) -> None:
         if not (logdir / "checkpoint.pt").exists():
             print(f"{name:<28} (no checkpoint yet)")
             continue
-        env = make_env(TASK, seed=seed, **ENV)
+        env = make_env(args.task, seed=seed, **args.env)
         cfg, agent, counters = load_trained(logdir, args.pretrained, env.action_space.shape[0])
-        result = evaluate(agent, env, episodes, TASK, seed=seed)
+        result = evaluate(agent, env, episodes, args.task, seed=seed)
         env.close()
         at = f"u{counters['updates']}" if cfg.paradigm == "offline" else f"e{counters['env_step']}"
-        row(name, at, result["return"], result["return_std"], result["success_rate"])
+        row(name, at, result["return"], result["return_std"], result.get("success_rate", float("nan")))
 
 
 def main() -> int:
@@ -222,9 +248,21 @@ def main() -> int:
     p.add_argument("--runs", nargs="+", help="with --report: these run directories of LOGDIR instead of the planned ones")
     p.add_argument("--final-episodes", type=int, default=0,
                    help="play every run's last checkpoint and the references again for this many episodes")
+    p.add_argument("--from-run", type=Path, metavar="RUNDIR",
+                   help="a `hauwm finetune` run (e.g. bench_learning.py --gpu's) whose task, replay (the medium part) "
+                        "and agent (the expert part and the demonstrations) make the datasets, for DMC and RoboDesk")
+    p.add_argument("--gpu", action="store_true", help="Table 3 sizes on a CUDA device (GPU_SETTINGS) instead of the CPU's")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args()
     from finetune.config import parse_override
+    from finetune.datasets.sources import run_config
+
+    args.sizes = GPU_SETTINGS if args.gpu else CPU_SETTINGS
+    args.task, args.env = TASK, ENV
+    if args.from_run:
+        source = run_config(args.from_run)
+        args.task = source.task
+        args.env = dict(action_repeat=source.action_repeat, time_limit=source.time_limit, fast_render=source.fast_render)
 
     args.logdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("MINARI_DATASETS_PATH", str((args.logdir / "minari").resolve()))
@@ -252,7 +290,7 @@ def main() -> int:
         for name, settings in plans.items():
             run(name, settings, args)
     names = args.runs if args.report and args.runs else list(plans)
-    report(args, names, references(args.eval_episodes, args.seed + 10_000))
+    report(args, names, references(args, args.eval_episodes, args.seed + 10_000))
     if args.final_episodes:
         final_report(args, names)
     return 0
