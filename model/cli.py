@@ -111,6 +111,9 @@ def lightning_cli(args: list[str]):
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
     # checkpoints after the optimizer step are what resume needs; Lightning warns about it under manual optimisation
     warnings.filterwarnings("ignore", message="Using ModelCheckpoint with manual optimization")
+    # training_step logs every log_every_n_steps *global* steps, across epochs (make demo: 30 logs in 300 steps of
+    # 9-step epochs at 10); Lightning warns as if epochs shorter than the interval never logged
+    warnings.filterwarnings("ignore", message="The number of training batches .* is smaller than the logging interval")
     return PretrainCLI(
         PretrainModule,
         ShardDataModule,
