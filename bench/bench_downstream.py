@@ -261,8 +261,7 @@ def main() -> int:
     args.task, args.env = TASK, ENV
     if args.from_run:
         source = run_config(args.from_run)
-        args.task = source.task
-        args.env = dict(action_repeat=source.action_repeat, time_limit=source.time_limit, fast_render=source.fast_render)
+        args.task, args.env = source.task, source.env_settings
 
     args.logdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("MINARI_DATASETS_PATH", str((args.logdir / "minari").resolve()))

@@ -78,8 +78,7 @@ def main() -> int:
         sys.exit(f"{args.run}: an offline run is needed, this one is {cfg.paradigm!r}")
     from finetune.envs import make_env
 
-    env = make_env(cfg.task, seed=cfg.seed, action_repeat=cfg.action_repeat, fast_render=cfg.fast_render,
-                   time_limit=cfg.time_limit)
+    env = make_env(cfg.task, seed=cfg.seed, **cfg.env_settings)
     action_dim = env.action_space.shape[0]
     env.close()
     cfg, agent, counters = load_trained(args.run, args.pretrained, action_dim)

@@ -95,6 +95,11 @@ class FinetuneConfig:
     disc_gp_scale: float = 10.0  # weight of its input-space gradient penalty (WGAN-GP / DAC)
     expert_latents: str = "imagined"  # expert pairs: imagined along the demos' actions, or their posteriors (VMAIL)
 
+    @property
+    def env_settings(self) -> dict[str, object]:
+        """`make_env`'s keyword arguments for this config: the dynamics and frames its agent acts in."""
+        return {"action_repeat": self.action_repeat, "time_limit": self.time_limit, "fast_render": self.fast_render}
+
     def __post_init__(self) -> None:
         for name, allowed in CHOICES.items():
             if getattr(self, name) not in allowed:

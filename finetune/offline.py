@@ -67,8 +67,7 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     try:
-        eval_env = make_env(cfg.task, seed=cfg.seed + 10_000, action_repeat=cfg.action_repeat,
-                            fast_render=cfg.fast_render, time_limit=cfg.time_limit)
+        eval_env = make_env(cfg.task, seed=cfg.seed + 10_000, **cfg.env_settings)
     except ValueError as error:  # an unknown task name
         raise FinetuneError(f"task {cfg.task!r}: {error}") from None
     action_dim = eval_env.action_space.shape[0]

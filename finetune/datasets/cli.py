@@ -124,7 +124,7 @@ def collect(args: argparse.Namespace) -> None:
             if args.task and args.task != run.task:
                 raise DatasetError(f"--checkpoint {args.checkpoint} trained on {run.task}, not --task {args.task}")
             args.task = run.task
-            settings = {"action_repeat": run.action_repeat, "time_limit": run.time_limit, "fast_render": run.fast_render}
+            settings = run.env_settings
         if not args.task:
             raise DatasetError(f"--policy {args.policy} needs --task, e.g. --task metaworld_drawer_close")
         settings.update(overrides)
