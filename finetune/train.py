@@ -123,17 +123,23 @@ def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dic
     os.replace(tmp, path)
 
 
+def settings_before_they_existed(paradigm: str) -> dict[str, object]:
+    """What a run written before these settings existed had: its checkpoint and config.yaml lack them."""
+    before: dict[str, object] = {"paradigm": "online", "model_heads": 1, "dataset": None, "demos": None}
+    if paradigm == "imitation":
+        before["expert_latents"] = "posterior"  # VMAIL's expert pairs, the only kind before the setting
+    return before
+
+
 def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
                     rng: np.random.Generator | None = None) -> dict[str, int]:
     state = torch.load(path, map_location=agent.device, weights_only=True)
     if state["export_sha256"] != fingerprint:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the same export or use another --logdir")
-    newer = {"paradigm": "online", "model_heads": 1, "dataset": None, "demos": None}  # what older checkpoints had
-    if cfg.paradigm == "imitation":
-        newer["expert_latents"] = "posterior"
-    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm", *newer):
-        written = state["config"].get(key, newer.get(key))  # .get: a checkpoint older than the setting
+    before = settings_before_they_existed(cfg.paradigm)
+    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm", *before):
+        written = state["config"].get(key, before.get(key))  # .get: a checkpoint older than the setting
         if written != getattr(cfg, key):
             raise FinetuneError(f"{path} was written by a run with {key}={written!r}, this run has "
                                 f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
@@ -160,11 +166,10 @@ def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
     for name in ("config.yaml", CHECKPOINT):
         if not (logdir / name).is_file():
             raise FinetuneError(f"{logdir} holds no {name}: not a run directory, or a run that has not checkpointed yet")
-    overrides: dict[str, object] = {"device": str(device)}
     written = yaml.safe_load((logdir / "config.yaml").read_text())
-    if written.get("paradigm") == "imitation" and "expert_latents" not in written:
-        overrides["expert_latents"] = "posterior"  # a run from before the setting (as load_checkpoint reads it)
-    cfg = load_config(logdir / "config.yaml", overrides)
+    before = settings_before_they_existed(written.get("paradigm", "online"))
+    overrides = {key: value for key, value in before.items() if key not in written}  # an older run's values
+    cfg = load_config(logdir / "config.yaml", {**overrides, "device": str(device)})
     agent_class = {"online": Agent, "offline": OfflineAgent, "imitation": ImitationAgent}[cfg.paradigm]
     hauwm = pretrained if cfg.agent == "hauwm" else None
     agent = build_agent(cfg, action_dim, hauwm, device, agent_class)
@@ -260,7 +265,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    env_kwargs = dict(action_repeat=cfg.action_repeat, fast_render=cfg.fast_render, time_limit=cfg.time_limit)
+    env_kwargs = cfg.env_settings
     try:
         probe = make_env(cfg.task, seed=cfg.seed, **env_kwargs)
     except ValueError as error:  # an unknown task name
