@@ -14,13 +14,11 @@ unbroken one (same batches, same weights, same evaluation episodes).
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 from tqdm import tqdm
 
 from finetune.agent import Agent
@@ -28,9 +26,8 @@ from finetune.config import FinetuneConfig
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
-from finetune.train import (CHECKPOINT, FinetuneError, build_agent, close_window, evaluate, exclusive,
-                            export_fingerprint, load_checkpoint, load_dataset, next_multiple, resolve_device,
-                            save_checkpoint)
+from finetune.train import (CHECKPOINT, FinetuneError, close_window, evaluate, exclusive, load_dataset,
+                            next_multiple, save_checkpoint, start_run, task_env)
 from finetune.world_model import Latent
 
 
@@ -59,17 +56,7 @@ def train_offline(cfg: FinetuneConfig, pretrained: str | Path | None = None, pro
 
 
 def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> dict[str, float]:
-    from finetune.envs import make_env
-
-    logdir = Path(cfg.logdir)
-    device = resolve_device(cfg.device)
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    try:
-        eval_env = make_env(cfg.task, seed=cfg.seed + 10_000, **cfg.env_settings)
-    except ValueError as error:  # an unknown task name
-        raise FinetuneError(f"task {cfg.task!r}: {error}") from None
+    eval_env = task_env(cfg, cfg.seed + 10_000)
     action_dim = eval_env.action_space.shape[0]
     rng = np.random.default_rng(cfg.seed)
     replay = Replay(None, cfg.replay_capacity, rng)
@@ -77,15 +64,11 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
         replay.add(episode)
     if not replay.ready(cfg.seq_len):
         raise FinetuneError(f"--dataset {cfg.dataset}: no episode holds seq_len = {cfg.seq_len} steps; lower seq_len")
-    agent = build_agent(cfg, action_dim, pretrained, device, OfflineAgent)
-    fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
     counters = {"updates": 0, "next_eval": cfg.eval_every, "next_checkpoint": cfg.checkpoint_every,
                 "next_log": cfg.log_every}
-    checkpoint = logdir / CHECKPOINT
-    if checkpoint.exists():
-        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng)
-    (logdir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
-    logger = Logger(logdir, step_name="update")
+    agent, fingerprint, counters = start_run(cfg, pretrained, OfflineAgent, action_dim, counters, rng)
+    checkpoint = Path(cfg.logdir) / CHECKPOINT
+    logger = Logger(Path(cfg.logdir), step_name="update")
     last_eval: dict[str, float] = {}
     bar = tqdm(total=cfg.steps, initial=counters["updates"], unit=" update", desc=f"offline {cfg.task}",
                disable=not progress, dynamic_ncols=True)

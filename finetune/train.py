@@ -255,47 +255,61 @@ def new_episode(obs: np.ndarray, action_shape: tuple[int, ...]) -> dict[str, lis
     return {"obs": [obs], "action": [np.zeros(action_shape, np.float32)], "reward": [0.0]}
 
 
-def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hooks: LoopHooks = LoopHooks()) -> dict[str, float]:
-    """The loop itself, in a run directory this process holds the lock of."""
+def task_env(cfg: FinetuneConfig, seed: int):
+    """cfg.task's environment at cfg's settings (finetune.envs.make_env); an unknown task is a FinetuneError."""
     from finetune.envs import make_env
-    from finetune.envs.vector import make_vector_env
 
-    logdir = Path(cfg.logdir)
+    try:
+        return make_env(cfg.task, seed=seed, **cfg.env_settings)
+    except ValueError as error:  # an unknown task name
+        raise FinetuneError(f"task {cfg.task!r}: {error}") from None
+
+
+def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: type[Agent], action_dim: int,
+              counters: dict[str, int], rng: np.random.Generator) -> tuple[Agent, str, dict[str, int]]:
+    """The start every paradigm shares: torch's threads and seed, the agent, and the run directory's checkpoint
+    if there is one (it restores the agent, `rng` and the counters; a fresh run keeps `counters`); config.yaml
+    written. -> (agent, the export's fingerprint, counters)."""
     device = resolve_device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    env_kwargs = cfg.env_settings
-    try:
-        probe = make_env(cfg.task, seed=cfg.seed, **env_kwargs)
-    except ValueError as error:  # an unknown task name
-        raise FinetuneError(f"task {cfg.task!r}: {error}") from None
-    action_dim = probe.action_space.shape[0]
-    probe.close()
-    agent = build_agent(cfg, action_dim, pretrained, device, hooks.agent_class)
+    agent = build_agent(cfg, action_dim, pretrained, device, agent_class)
     fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
-    counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
-                "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
-    rng = np.random.default_rng([cfg.seed, 0])  # the replay's sampler; a checkpoint restores its state
-    checkpoint = logdir / CHECKPOINT
+    checkpoint = Path(cfg.logdir) / CHECKPOINT
     if checkpoint.exists():
         counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng)
-    (logdir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    (Path(cfg.logdir) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    return agent, fingerprint, counters
+
+
+def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hooks: LoopHooks = LoopHooks()) -> dict[str, float]:
+    """The loop itself, in a run directory this process holds the lock of."""
+    from finetune.envs.vector import make_vector_env
+
+    logdir = Path(cfg.logdir)
+    probe = task_env(cfg, cfg.seed)
+    action_dim = probe.action_space.shape[0]
+    probe.close()
+    rng = np.random.default_rng([cfg.seed, 0])  # the replay's sampler; a checkpoint restores its state
+    counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
+                "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
+    agent, fingerprint, counters = start_run(cfg, pretrained, hooks.agent_class, action_dim, counters, rng)
 
     # a resumed run reseeds from its progress, so it does not replay the same random streams; with hooks.reseed
     # each episode is seeded from its index instead, in the envs of a fresh run. Env i of num_envs gets its own
     # seeds (env 0 a single env's).
     progress_seed = 0 if hooks.reseed else counters["episodes"]
     seeds = [cfg.seed + progress_seed + ENV_SEED_STRIDE * i for i in range(cfg.num_envs)]
-    eval_env = make_env(cfg.task, seed=cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]), **env_kwargs)
+    eval_env = task_env(cfg, cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]))
     if hooks.make_replay is None:
         replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
     else:
         replay = hooks.make_replay(cfg, logdir / "replay", rng, action_dim)
     replay.load()
     logger = Logger(logdir)
-    with contextlib.closing(make_vector_env(cfg.task, seeds, **env_kwargs)) as envs:
-        return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, checkpoint, fingerprint,
+    with contextlib.closing(make_vector_env(cfg.task, seeds, **cfg.env_settings)) as envs:
+        return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, logdir / CHECKPOINT, fingerprint,
                     progress, hooks.reseed)
 
 
