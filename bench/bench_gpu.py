@@ -2,7 +2,7 @@
 
     python bench/bench_gpu.py                     # a GPU: ssv2.yaml settings, L = 16 and 50; under 8 minutes
     python bench/bench_gpu.py --device cpu        # tiny.yaml settings, few steps: the same code on a CPU
-        [--shards DIR] [--lengths 16 50] [--steps 40] [--workers 4] [--precision bf16-mixed]
+        [--shards DIR] [--lengths 16 50] [--steps 40] [--workers 4] [--worker-priority idle] [--precision bf16-mixed]
 
 Bare step: PretrainModule's noise, observe + losses (`training_losses`, eager or through `model.compile`),
 backward (GradScaler under 16-mixed), unscale, clip, the fused Adam's step and λ's dual step — what
@@ -12,7 +12,7 @@ time of the 3 warm-up steps (compiling, CUDA-graph recording), peak memory.
 
 Real fit: `hauwm pretrain fit` through model.cli's LightningCLI with configs/pretrain/ssv2.yaml (GPU) or
 tiny.yaml (CPU) on one device: its precision, model.compile and log_every_n_steps, --workers DataLoader
-workers; progress bar off (its output would interleave) and no validation. Steps/s over the steps after the
+workers at the config's data.worker_priority (or --worker-priority); progress bar off (its output would interleave) and no validation. Steps/s over the steps after the
 warm-up (whole epochs for short epochs), on
   (a) long epochs: the sample train shards linked 63 times (over 500 steps an epoch at batch 32, 4 workers);
   (b) short epochs: the sample data's 258 train clips (8 steps an epoch at batch 32, 4 workers: a new
@@ -47,7 +47,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from data_pipeline.loader import MANIFEST_FILE, SequenceDataset, shard_set  # noqa: E402
+from data_pipeline.loader import MANIFEST_FILE, WORKER_PRIORITIES, SequenceDataset, shard_set  # noqa: E402
 from model.cli import lightning_cli  # noqa: E402
 from model.config import WorldModelConfig  # noqa: E402
 from model.module import PretrainModule, compiled, step_unless  # noqa: E402
@@ -204,11 +204,12 @@ def whole_epochs(steps: int, per_epoch: int) -> int:
     return math.ceil(steps / per_epoch) * per_epoch
 
 
-def real_fit(config: Path, shards: Path, workers: int, max_steps: int, precision: str, log_every: int, root: Path,
-             device: torch.device) -> dict:
+def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max_steps: int, precision: str,
+             log_every: int, root: Path, device: torch.device) -> dict:
     """`hauwm pretrain fit` (model.cli's LightningCLI) on one device → steps/s after the warm-up and more."""
     reset(device)
     args = ["fit", "--config", str(config), "--data.shards", str(shards), "--data.num_workers", str(workers),
+            "--data.worker_priority", worker_priority,
             "--trainer.precision", precision, "--trainer.max_steps", str(max_steps), "--trainer.devices", "1",
             "--trainer.log_every_n_steps", str(log_every),
             "--trainer.strategy", "auto", "--trainer.limit_val_batches", "0", "--trainer.enable_progress_bar",
@@ -233,6 +234,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=None, help="timed bare steps (GPU: 40; CPU: 16)")
     parser.add_argument("--fit-steps", type=int, default=None, help="fit steps, long epochs (GPU: 500; CPU: 80)")
     parser.add_argument("--workers", type=int, default=None, help="fit DataLoader workers (GPU: 4; CPU: 2)")
+    parser.add_argument("--worker-priority", choices=WORKER_PRIORITIES, default=None,
+                        help="fit workers' scheduling (default: the config's: normal for ssv2.yaml, idle for tiny.yaml)")
     parser.add_argument("--precision", default=None, help="default: the config's (16-mixed on GPU, 32-true on CPU)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--log-every", type=int, default=None, help="fit's log_every_n_steps (default: the config's)")
@@ -256,6 +259,7 @@ def main() -> None:
     compile_mode = "reduce-overhead" if gpu else "default"
     rounds = args.rounds or (1 if gpu else 3)
     log_every = args.log_every or loaded["trainer"]["log_every_n_steps"]
+    worker_priority = args.worker_priority or loaded["data"].get("worker_priority", "normal")
     fit_length = loaded["data"]["seq_len"]
 
     print(f"machine: {machine(device)}")
@@ -264,7 +268,7 @@ def main() -> None:
           f"batch {batch_size}, K_max {k_max}), "
           f"{settings['precision']}, compiled = model.compile {compile_mode}; bare: L {lengths}, "
           f"{WARM_UP} warm-up + {steps} timed steps; fit: L {fit_length}, model.compile "
-          f"{loaded['model'].get('compile', 'off')}, {workers} workers, log every {log_every} steps; "
+          f"{loaded['model'].get('compile', 'off')}, {workers} workers ({worker_priority} priority), log every {log_every} steps; "
           f"{torch.get_num_threads()} torch threads", flush=True)
     work = Path(tempfile.mkdtemp(prefix="bench-gpu-"))
     started = time.perf_counter()
@@ -300,8 +304,8 @@ def main() -> None:
     ratios: dict[tuple[str, int], list[float]] = {}  # (run, workers) → each round's fit / bare steps/s
     for round_index in range(rounds):
         for index, (label, directory, fit_workers, max_steps) in enumerate(runs):
-            result = real_fit(config, directory, fit_workers, max_steps, settings["precision"], log_every,
-                              work / f"fit-{round_index}-{index}", device)
+            result = real_fit(config, directory, fit_workers, worker_priority, max_steps, settings["precision"],
+                              log_every, work / f"fit-{round_index}-{index}", device)
             ratio_text = ""
             if reference is not None:
                 after = reference if gpu else bare_steps(settings, fit_batches, "off", steps, device)  # bracket on a CPU

@@ -17,7 +17,7 @@ import warnings
 
 import lightning
 
-from .loader import LoaderError, SequenceDataset, make_dataloader, read_manifest, shard_set
+from .loader import LoaderError, SequenceDataset, check_worker_priority, make_dataloader, read_manifest, shard_set
 
 
 class SetEpoch(lightning.Callback):
@@ -33,10 +33,14 @@ class SetEpoch(lightning.Callback):
 class ShardDataModule(lightning.LightningDataModule):
     def __init__(self, shards: str, train_split: str = "train", val_split: str = "validation", batch_size: int = 32,
                  seq_len: int = 16, k_max: int = 5, num_workers: int = 2, shuffle_buffer: int = 256, seed: int = 0,
-                 val_batches: int = 8, shard_url: str | None = None, timeout: float = 600.0):
+                 val_batches: int = 8, shard_url: str | None = None, timeout: float = 600.0,
+                 worker_priority: str = "normal"):
         """`shards`: a shard directory (with manifest.json). `shard_url`: optional URL template for the tars,
         e.g. `"pipe:aws s3 cp s3://bucket/shards/{name} -"`, with the manifest copied to `shards`. `timeout`:
-        seconds a loader worker may take for one batch before the run stops with an error naming its shard."""
+        seconds a loader worker may take for one batch before the run stops with an error naming its shard.
+        `worker_priority`: `normal`, or `idle` for workers that use only the cores the training step leaves
+        free (Linux; for CPU-only runs on few cores, see `loader.check_worker_priority`)."""
+        check_worker_priority(worker_priority)
         super().__init__()
         self.save_hyperparameters()
         self.train_set: SequenceDataset | None = None
@@ -66,10 +70,10 @@ class ShardDataModule(lightning.LightningDataModule):
                           "epoch reads the shards in the same order", stacklevel=2)
         # Lightning warns that a sized IterableDataset may be inaccurate with workers; ours splits per worker.
         warnings.filterwarnings("ignore", message=".*`IterableDataset` has `__len__` defined")
-        loader = make_dataloader(self.train_set, self.hparams.timeout)
+        loader = make_dataloader(self.train_set, self.hparams.timeout, self.hparams.worker_priority)
         if self.trainer is not None:  # batches of this epoch trained on, for a checkpoint's data position
             loader.batches_done = lambda: self.trainer.fit_loop.epoch_loop.batch_progress.current.processed
         return loader
 
     def val_dataloader(self):
-        return make_dataloader(self.val_set, self.hparams.timeout)
+        return make_dataloader(self.val_set, self.hparams.timeout, self.hparams.worker_priority)

@@ -42,6 +42,7 @@ import signal
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from itertools import islice
 from pathlib import Path
 
@@ -278,11 +279,27 @@ class SequenceDataset(IterableDataset):
             yield failure
 
 
-def _init_worker(_: int) -> None:
+WORKER_PRIORITIES = ("normal", "idle")
+
+
+def check_worker_priority(priority: str) -> None:
+    """`normal`: workers compete for cores with the training step. `idle`: workers run under Linux's `SCHED_IDLE`,
+    only on cores the training process leaves free — on a CPU-only run with few cores the step keeps its threads
+    (bench/README.md, "Pre-training on one GPU"); on a node fully loaded by other jobs such workers may starve."""
+    if priority not in WORKER_PRIORITIES:
+        raise LoaderError(f"--data.worker_priority must be one of {', '.join(WORKER_PRIORITIES)}, got {priority!r}")
+    if priority == "idle" and not hasattr(os, "SCHED_IDLE"):
+        raise LoaderError("--data.worker_priority idle needs Linux's SCHED_IDLE, which this system lacks: "
+                          "use --data.worker_priority normal")
+
+
+def _init_worker(priority: str, _: int) -> None:
     import cv2
 
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
+    if priority == "idle":
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
 
 _FETCHING = threading.Event()  # set while the main thread waits for a batch of a ResumableDataLoader
@@ -317,6 +334,7 @@ class ResumableDataLoader(DataLoader):
     (the data module points it at the Trainer's progress)."""
 
     batches_done: Callable[[], int] = staticmethod(lambda: 0)
+    worker_priority: str = "normal"  # set by `make_dataloader`, for the stalled-worker message
 
     def state_dict(self) -> dict:
         return {"epoch": self.dataset.epoch, "batches": int(self.batches_done())}
@@ -389,9 +407,11 @@ class ResumableDataLoader(DataLoader):
         reading = ", ".join(f"worker {worker} reading shard {self.dataset.reading(worker)}"
                             for worker in range(self.num_workers))
         if timed_out:
+            starved = (" or, with --data.worker_priority idle, other processes that keep every core busy"
+                       if self.worker_priority == "idle" else "")
             return (f"no batch came from the DataLoader workers for {self.timeout:.0f} s ({reading}): a `pipe:` "
-                    f"command or a file system that stalls; raise --data.timeout if fetching a shard takes longer; "
-                    f"{RESUME_HINT}")
+                    f"command or a file system that stalls{starved}; raise --data.timeout if fetching a shard takes "
+                    f"longer; {RESUME_HINT}")
         return f"{error} ({reading}); {RESUME_HINT}"
 
 
@@ -401,11 +421,16 @@ def _death_cause(exitcode: int | None) -> str:
     return DEATH_CAUSES.get(-exitcode, f"killed by signal {-exitcode} ({signal.strsignal(-exitcode)})")
 
 
-def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0) -> ResumableDataLoader:
+def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0,
+                    worker_priority: str = "normal") -> ResumableDataLoader:
     """Batches come collated from the dataset, so `batch_size=None`. With workers, they start once and stay for
-    the whole run (`persistent_workers`; each epoch's iterator reads the position from shared memory), and a
-    worker that gives no batch for `timeout` seconds is reported as stalled."""
+    the whole run (`persistent_workers`; each epoch's iterator reads the position from shared memory), a
+    worker that gives no batch for `timeout` seconds is reported as stalled, and `worker_priority` is their
+    scheduling class (`check_worker_priority`)."""
+    check_worker_priority(worker_priority)
     workers = dataset.num_workers > 0
-    return ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
-                               worker_init_fn=_init_worker, persistent_workers=workers,
-                               timeout=timeout if workers else 0, pin_memory=torch.cuda.is_available())
+    loader = ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
+                                 worker_init_fn=partial(_init_worker, worker_priority), persistent_workers=workers,
+                                 timeout=timeout if workers else 0, pin_memory=torch.cuda.is_available())
+    loader.worker_priority = worker_priority
+    return loader

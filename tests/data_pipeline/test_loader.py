@@ -4,6 +4,7 @@ resume position, and the LightningDataModule around it."""
 
 import json
 import multiprocessing
+import os
 import tarfile
 from collections import Counter
 
@@ -140,6 +141,25 @@ def test_persistent_workers_give_each_epoch_what_workers_started_for_it_give(bui
         assert summary([first, *batches]) == expected[epoch]
     assert len(pids[0]) == 2 and all(epoch_pids == pids[0] for epoch_pids in pids)  # started once
     assert len({str(epoch) for epoch in expected}) == 4  # a new order every epoch
+
+
+@pytest.mark.parametrize("priority, scheduler", [("idle", "SCHED_IDLE"), ("normal", "SCHED_OTHER")])
+def test_worker_priority_sets_the_workers_scheduling_class(built_shards, priority, scheduler):
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=2)
+    loader = make_dataloader(dataset, worker_priority=priority)
+    before = frozenset(worker_pids())
+    batches = iter(loader)
+    next(batches)  # the workers have run their init
+    workers = worker_pids(before)
+    assert len(workers) == 2
+    assert {os.sched_getscheduler(pid) for pid in workers} == {getattr(os, scheduler)}
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the training process keeps its class
+    del batches, loader
+
+
+def test_an_unknown_worker_priority_is_refused_with_the_flag(built_shards):
+    with pytest.raises(LoaderError, match=r"--data.worker_priority must be one of normal, idle, got 'low'"):
+        ShardDataModule(str(built_shards), worker_priority="low")
 
 
 def test_persistent_workers_follow_a_resume_position_set_between_epochs(built_shards):
