@@ -12,8 +12,8 @@ time of the 3 warm-up steps (compiling, CUDA-graph recording), peak memory.
 
 Real fit: `hauwm pretrain fit` through model.cli's LightningCLI with configs/pretrain/ssv2.yaml (GPU) or
 tiny.yaml (CPU) on one device: its precision, model.compile and log_every_n_steps, --workers DataLoader
-workers at the config's data.worker_priority (or --worker-priority); progress bar off (its output would interleave) and no validation. Steps/s over the steps after the
-warm-up (whole epochs for short epochs), on
+workers at the config's data.worker_priority (or --worker-priority); progress bar off (its output would
+interleave) and no validation. Steps/s over the steps after the warm-up (whole epochs for short epochs), on
   (a) long epochs: the sample train shards linked 63 times (over 500 steps an epoch at batch 32, 4 workers);
   (b) short epochs: the sample data's 258 train clips (8 steps an epoch at batch 32, 4 workers: a new
       epoch every 8 steps, served by the same persistent workers; before them, the workers started again);
@@ -268,7 +268,8 @@ def main() -> None:
           f"batch {batch_size}, K_max {k_max}), "
           f"{settings['precision']}, compiled = model.compile {compile_mode}; bare: L {lengths}, "
           f"{WARM_UP} warm-up + {steps} timed steps; fit: L {fit_length}, model.compile "
-          f"{loaded['model'].get('compile', 'off')}, {workers} workers ({worker_priority} priority), log every {log_every} steps; "
+          f"{loaded['model'].get('compile', 'off')}, {workers} workers ({worker_priority} priority), "
+          f"log every {log_every} steps; "
           f"{torch.get_num_threads()} torch threads", flush=True)
     work = Path(tempfile.mkdtemp(prefix="bench-gpu-"))
     started = time.perf_counter()
