@@ -11,7 +11,7 @@ export PYOPENGL_PLATFORM ?= osmesa
 # Debian packages the project needs: OSMesa for headless MuJoCo rendering.
 APT_PACKAGES := libosmesa6 libgl1 libegl1
 
-.PHONY: install demo test test-all bench bench-checks clean system-deps
+.PHONY: install demo test test-all test-floor bench bench-checks clean system-deps
 
 install: $(STAMP)
 
@@ -59,6 +59,18 @@ test: install
 
 test-all: install
 	$(BIN)/python -m pytest -m "slow or not slow"
+
+# Every test on the oldest torch pyproject.toml admits (torch 2.11, torchvision 0.26: the GPU machines' image), in
+# .venv-floor; constraints.txt's other versions, less those that pin torch's own (triton, CUDA, setuptools < 82).
+# Downloads about 3 GB of torch 2.11 CUDA wheels from PyPI the first time; then about 7 minutes of tests on 2 cores.
+FLOOR := .venv-floor
+test-floor:
+	@$(MAKE) --no-print-directory system-deps
+	test -x $(FLOOR)/bin/python || $(PYTHON) -m venv $(FLOOR)
+	grep -v -E '^(torch|torchvision|triton|nvidia-.*|cuda-.*|setuptools)==' constraints.txt > $(FLOOR)/constraints.txt
+	$(FLOOR)/bin/python -m pip install --quiet --upgrade pip
+	$(FLOOR)/bin/python -m pip install --quiet torch==2.11.0 torchvision==0.26.0 -e ".[test]" -c $(FLOOR)/constraints.txt
+	$(FLOOR)/bin/python -m pytest -m "slow or not slow"
 
 # speed figures (minutes); the paper-claim, learning and world-model action checks take ~10, ~25 and ~10 minutes: `make bench-checks`
 BENCH_SPEED := bench/bench_shards.py bench/bench_loader.py bench/bench_pretrain.py bench/bench_envs.py bench/bench_agent.py bench/bench_datasets.py
