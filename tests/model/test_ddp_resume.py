@@ -30,8 +30,8 @@ def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shard
                "--data.seq_len", "6", "--data.num_workers", "0", "--trainer.limit_val_batches", "0",
                "--trainer.devices", "2", "--trainer.strategy", "ddp", "--trainer.max_steps", "5",
                "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", str(tmp_path / "run")]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), str(REPO)]),
-           "OMP_NUM_THREADS": "1", "PL_DISABLE_FORK": "1"}
+    python_path = [str(Path(__file__).parent), str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(python_path), "OMP_NUM_THREADS": "1", "PL_DISABLE_FORK": "1"}
     done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=400)
     assert done.returncode == 0, done.stderr[-3000:]
     rank0, rank1 = (json.loads((reports / f"rank{r}.json").read_text()) for r in (0, 1))
