@@ -27,8 +27,11 @@ import sys
 import zipfile
 from pathlib import Path
 
+from packaging.utils import canonicalize_name
+
 ROOT = Path(__file__).resolve().parents[1]
 CARRY_LIMIT = 64 * 2**20  # bytes a device call may carry, the working tree included
+REPOSITORY_ALLOWANCE = 8 * 2**20  # what the wheels must leave of it for the repository itself
 
 # Packages of constraints.txt missing from the GPU image (as its package list read on 2026-11-17).
 PRETRAIN = ["jsonargparse", "docstring_parser", "typeshed_client", "webdataset", "braceexpand", "decord", "simplejpeg"]
@@ -45,16 +48,12 @@ PLATFORMS = ["manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_24_x
 
 
 def pinned_versions() -> dict[str, str]:
-    """constraints.txt as {normalised name: 'name==version'}."""
+    """constraints.txt as {canonical name: 'name==version'}."""
     pins = {}
     for line in (ROOT / "constraints.txt").read_text().splitlines():
         if "==" in line and not line.startswith("#"):
-            pins[normalise(line.split("==")[0])] = line.strip()
+            pins[canonicalize_name(line.split("==")[0])] = line.strip()
     return pins
-
-
-def normalise(name: str) -> str:
-    return name.lower().replace("_", "-").replace(".", "-")
 
 
 def download(requirements: list[str], out: Path) -> None:
@@ -87,13 +86,13 @@ def main() -> None:
     args = parser.parse_args()
 
     pins = pinned_versions()
-    missing = [name for name in SETS[args.set] if normalise(name) not in pins]
+    missing = [name for name in SETS[args.set] if canonicalize_name(name) not in pins]
     if missing:
         sys.exit(f"gpu_wheels: constraints.txt pins no version of {', '.join(missing)}")
     args.out.mkdir(parents=True, exist_ok=True)
     for old in args.out.glob("*.whl"):
         old.unlink()
-    download([pins[normalise(name)] for name in SETS[args.set]], args.out)
+    download([pins[canonicalize_name(name)] for name in SETS[args.set]], args.out)
     for wheel in args.out.glob("dm_control-*.whl"):
         trim_wheel(wheel, DM_CONTROL_UNUSED)
 
@@ -102,9 +101,9 @@ def main() -> None:
         print(f"{wheel.stat().st_size / 1e6:8.2f} MB  {wheel.name}")
     total = sum(wheel.stat().st_size for wheel in wheels)
     print(f"{total / 1e6:8.2f} MB  in all, {len(wheels)} wheels in {args.out}")
-    if total > CARRY_LIMIT - 8 * 2**20:  # the working tree travels with them
-        sys.exit(f"gpu_wheels: {total / 2**20:.0f} MiB of wheels leave under 8 MiB of the {CARRY_LIMIT >> 20} MiB "
-                 "a device call may carry for the repository itself")
+    if total > CARRY_LIMIT - REPOSITORY_ALLOWANCE:  # the working tree travels with them
+        sys.exit(f"gpu_wheels: {total / 2**20:.0f} MiB of wheels leave under {REPOSITORY_ALLOWANCE >> 20} MiB of the "
+                 f"{CARRY_LIMIT >> 20} MiB a device call may carry for the repository itself")
 
 
 if __name__ == "__main__":
