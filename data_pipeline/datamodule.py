@@ -48,6 +48,9 @@ class ShardDataModule(lightning.LightningDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         hp = self.hparams
+        # Lightning warns, for the validation loader first, that a sized IterableDataset may be inaccurate with
+        # workers; ours splits the shards per rank and worker and gives each worker its own count.
+        warnings.filterwarnings("ignore", message=".*`IterableDataset` has `__len__` defined")
         read_manifest(hp.shards)  # a clear error naming the directory and the build command
         common = dict(batch_size=hp.batch_size, seq_len=hp.seq_len, k_max=hp.k_max, seed=hp.seed)
         if stage in (None, "fit"):
@@ -68,8 +71,6 @@ class ShardDataModule(lightning.LightningDataModule):
         if self.trainer is not None and not any(isinstance(c, SetEpoch) for c in self.trainer.callbacks):
             warnings.warn("ShardDataModule: add data_pipeline.SetEpoch() to the Trainer's callbacks, or every "
                           "epoch reads the shards in the same order", stacklevel=2)
-        # Lightning warns that a sized IterableDataset may be inaccurate with workers; ours splits per worker.
-        warnings.filterwarnings("ignore", message=".*`IterableDataset` has `__len__` defined")
         loader = make_dataloader(self.train_set, self.hparams.timeout, self.hparams.worker_priority)
         if self.trainer is not None:  # batches of this epoch trained on, for a checkpoint's data position
             loader.batches_done = lambda: self.trainer.fit_loop.epoch_loop.batch_progress.current.processed

@@ -55,13 +55,14 @@ def refuse_flat_sizes(args: list[str]) -> None:
 def lightning_cli(args: list[str]):
     """Run a LightningCLI subcommand over PretrainModule and the shard DataModule."""
     refuse_flat_sizes(args)
-    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
     from lightning.pytorch.cli import LightningCLI
 
     from data_pipeline.datamodule import ShardDataModule
     from data_pipeline.loader import read_manifest
     from model.config import WorldModelConfig
     from model.module import ConfigError, PretrainModule, refuse_other_size
+    from model.progress import StepProgressBar
 
     class PretrainCLI(LightningCLI):
         def add_arguments_to_parser(self, parser) -> None:
@@ -106,6 +107,10 @@ def lightning_cli(args: list[str]):
             for callback in self.trainer.checkpoint_callbacks:
                 if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
                     callback.dirpath = str(Path(self.trainer.default_root_dir) / "checkpoints")
+            callbacks = self.trainer.callbacks
+            for index, callback in enumerate(callbacks):  # Lightning's own default bar; a user's choice stays
+                if type(callback) in (RichProgressBar, TQDMProgressBar):
+                    callbacks[index] = StepProgressBar()
 
     # `hauwm` passes its own argv on purpose; Lightning would warn that sys.argv differs
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
@@ -114,6 +119,8 @@ def lightning_cli(args: list[str]):
     # training_step logs every log_every_n_steps *global* steps, across epochs (make demo: 30 logs in 300 steps of
     # 9-step epochs at 10); Lightning warns as if epochs shorter than the interval never logged
     warnings.filterwarnings("ignore", message="The number of training batches .* is smaller than the logging interval")
+    # Lightning 2.6's own pytree helper uses a torch API that torch 2.14 deprecates (not this project's code)
+    warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated")
     return PretrainCLI(
         PretrainModule,
         ShardDataModule,
