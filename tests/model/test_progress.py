@@ -42,7 +42,8 @@ def fit_regression(tmp_path, max_steps: int, ckpt_path=None) -> tuple[lightning.
 
 def test_the_bar_runs_once_over_every_step_of_short_epochs(tmp_path):
     _, bar = fit_regression(tmp_path, max_steps=10)
-    assert bar.train_progress_bar.desc.startswith("Epoch 3:")  # 3 + 3 + 3 + 1 steps: Lightning's own bar would end at 1 of 1
+    # 3 + 3 + 3 + 1 steps: Lightning's own bar would end at 1 of 1
+    assert bar.train_progress_bar.desc.startswith("Epoch 3:")
     assert (bar.train_progress_bar.n, bar.train_progress_bar.total) == (10, 10)
     assert bar.train_progress_bar.unit == "step"
     assert "loss=" in str(bar.train_progress_bar.postfix)
