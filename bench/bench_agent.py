@@ -10,7 +10,7 @@ values) and the scratch baseline with the same RSSM sizes, on a random 64×64 ba
 batched `Agent.act` on `--act-batches` frames at a time (one per env), in steps (frames) per second.
 Envs: `--task` stepped with random actions as the training loop steps them (`finetune.envs.vector`: in
 this process for one env, one worker process each for more), in agent steps per second summed over
-the envs, after the workers have started (start-up timed separately).
+the envs, after the workers have started (start-up timed separately), pinned to CPUs unless --no-pin-envs.
 """
 
 from __future__ import annotations
@@ -102,12 +102,12 @@ def bench_acting(agent: Agent, envs: int, seconds: float) -> tuple[float, float]
     return first, envs * calls / (time.perf_counter() - start)
 
 
-def bench_envs(task: str, num_envs: int, seconds: float, fast_render: bool) -> tuple[float, float]:
+def bench_envs(task: str, num_envs: int, seconds: float, fast_render: bool, pin: bool) -> tuple[float, float]:
     """-> (seconds to start the envs, agent steps per second summed over them)."""
     from finetune.envs.vector import make_vector_env
 
     start = time.perf_counter()
-    envs = make_vector_env(task, list(range(num_envs)), fast_render=fast_render)
+    envs = make_vector_env(task, list(range(num_envs)), pin, fast_render=fast_render)
     envs.reset()
     envs.action_space.seed(0)
     started = time.perf_counter() - start
@@ -137,6 +137,8 @@ def main() -> None:
     parser.add_argument("--envs", nargs="*", type=int, default=None, help="env counts (default: 1 4 8 on cuda, 1 2 on cpu)")
     parser.add_argument("--fast-render", action=argparse.BooleanOptionalAction, default=None,
                         help="fast rendering in the env section (default: off on cuda, on on cpu)")
+    parser.add_argument("--pin-envs", action=argparse.BooleanOptionalAction, default=True,
+                        help="pin the env workers to CPUs, as training does by default (setting pin_envs)")
     parser.add_argument("--seconds", type=float, default=10.0, help="time per acting and env measurement")
     args = parser.parse_args()
     device = torch.device(args.device)
@@ -183,11 +185,12 @@ def main() -> None:
 
     if env_counts:
         render = "fast rendering" if fast_render else "default rendering"
-        print(f"\nenvs: {task}, {render}, random actions; agent steps/s summed over the envs")
+        pinning = "workers pinned to CPUs" if args.pin_envs else "workers not pinned"
+        print(f"\nenvs: {task}, {render}, {pinning}, random actions; agent steps/s summed over the envs")
         print(f"{'envs':>5} {'start s':>8} {'steps/s':>9} {'vs first':>9}")
         single = None
         for count in env_counts:
-            started, rate = bench_envs(task, count, args.seconds, fast_render)
+            started, rate = bench_envs(task, count, args.seconds, fast_render, args.pin_envs)
             single = single or rate
             print(f"{count:>5} {started:>8.1f} {rate:>9.1f} {rate / single:>8.2f}x", flush=True)
 

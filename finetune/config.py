@@ -43,6 +43,7 @@ class FinetuneConfig:
     compile: str = "auto"  # torch.compile of update and acting: "auto" (reduce-overhead on CUDA, off on CPU), "off", "default", "reduce-overhead"
     conv_bf16: bool = False  # bf16 autocast in the convolutional encoder and decoder
     num_envs: int = 1  # training envs; more than 1 steps them in worker processes while the learner trains
+    pin_envs: bool = True  # pin those worker processes to CPUs, an equal share of each (finetune/envs/vector.py)
     # environment
     steps: int = 1_000_000  # env steps (frames), Table 3: DMC 1M, Meta-World and RoboDesk 250k
     action_repeat: int = 2

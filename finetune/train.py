@@ -308,7 +308,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
         replay = hooks.make_replay(cfg, logdir / "replay", rng, action_dim)
     replay.load()
     logger = Logger(logdir)
-    with contextlib.closing(make_vector_env(cfg.task, seeds, **cfg.env_settings)) as envs:
+    with contextlib.closing(make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)) as envs:
         return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, logdir / CHECKPOINT, fingerprint,
                     progress, hooks.reseed)
 

@@ -13,7 +13,7 @@ import torch
 
 from finetune.config import load_config
 from finetune.envs import make_env, opengl
-from finetune.envs.vector import make_vector_env
+from finetune.envs.vector import make_vector_env, worker_cpus
 from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, train
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
@@ -105,6 +105,35 @@ def test_vector_env_resets_an_env_in_the_step_that_ends_its_episode():
         envs.close()
         for env in singles:
             env.close()
+
+
+def test_worker_cpus_give_every_cpu_an_equal_share_or_pin_nothing():
+    assert worker_cpus(2, [0, 1]) == [{0}, {1}]
+    assert worker_cpus(4, [0, 1]) == [{0}, {1}, {0}, {1}]
+    assert worker_cpus(2, [2, 5, 7, 9]) == [{2, 5}, {7, 9}]  # the usable CPUs, as taskset or SLURM leave them
+    assert worker_cpus(1, [3, 4]) == [{3, 4}]
+    assert worker_cpus(3, [0, 1]) is None and worker_cpus(3, [0, 1, 2, 3]) is None
+
+
+def thread_cpus(pid: int) -> set[frozenset[int]]:
+    """The CPU sets of every thread of process `pid`."""
+    return {frozenset(os.sched_getaffinity(int(t))) for t in os.listdir(f"/proc/{pid}/task")}
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="CPU affinity is Linux-only")
+def test_env_workers_are_pinned_with_all_their_threads_and_the_learner_is_not():
+    usable = os.sched_getaffinity(0)
+    for pin in (True, False):
+        envs = make_vector_env("dmc_cartpole_swingup", [0, 1], pin=pin, fast_render=True, time_limit=3)
+        try:
+            envs.reset()
+            envs.step(np.zeros((2, 1), np.float32))  # the renderer has made its threads
+            expected = (pin and worker_cpus(2, sorted(usable))) or [usable, usable]  # None: an odd number of CPUs
+            for process, cpus in zip(envs.processes, expected):
+                assert thread_cpus(process.pid) == {frozenset(cpus)}, (pin, process.pid)
+            assert os.sched_getaffinity(0) == usable
+        finally:
+            envs.close()
 
 
 def test_mujoco_gl_is_egl_only_with_a_gpu_where_egl_works(monkeypatch):
