@@ -49,8 +49,10 @@ def make_vector_env(name: str, seeds: list[int], pin: bool = True, **kwargs) -> 
     if START_METHOD == "forkserver":  # takes effect when the fork server starts (the first vector env of a process)
         context.set_forkserver_preload(["__main__", "finetune.envs", _suite(name).__name__])
     envs = AsyncVectorEnv(env_fns, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP)
-    if pin and hasattr(os, "sched_getaffinity"):
-        pin_workers(envs, worker_cpus(len(seeds), sorted(os.sched_getaffinity(0))))
+    if pin and hasattr(os, "sched_getaffinity"):  # Linux
+        cpu_sets = worker_cpus(len(seeds), sorted(os.sched_getaffinity(0)))
+        if cpu_sets is not None:
+            pin_workers(envs, cpu_sets)
     return envs
 
 
@@ -64,14 +66,14 @@ def worker_cpus(num_envs: int, cpus: list[int]) -> list[set[int]] | None:
     return None  # uneven: a lock-step batch would wait for the workers that share a CPU
 
 
-def pin_workers(envs: AsyncVectorEnv, cpu_sets: list[set[int]] | None) -> None:
+def pin_workers(envs: AsyncVectorEnv, cpu_sets: list[set[int]]) -> None:
     """Pin every thread of worker i (started, so its renderer's threads exist) to `cpu_sets[i]`."""
-    for index, (process, cpus) in enumerate(zip(envs.processes, cpu_sets or [])):
+    for index, (process, cpus) in enumerate(zip(envs.processes, cpu_sets)):
         try:
             for thread in os.listdir(f"/proc/{process.pid}/task"):
                 with contextlib.suppress(ProcessLookupError):  # a thread that ended since the listing
                     os.sched_setaffinity(int(thread), cpus)
         except OSError as error:  # no /proc, or a sandbox that forbids it: the envs still work, unpinned
             warnings.warn(f"could not pin env worker {index} (pid {process.pid}) to CPUs {sorted(cpus)}: {error}; "
-                          "the envs run unpinned (setting pin_envs: false skips pinning)", stacklevel=2)
+                          "it and the workers after it run unpinned (setting pin_envs: false skips pinning)", stacklevel=2)
             return
