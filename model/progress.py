@@ -23,11 +23,11 @@ class StepProgressBar(TQDMProgressBar):
 
     def on_train_start(self, trainer: lightning.Trainer, *_: Any) -> None:
         super().on_train_start(trainer)
-        bar = self.train_progress_bar
-        bar.reset(total=trainer.max_steps if trainer.max_steps > 0 else None)
-        bar.initial = bar.n = trainer.global_step  # a resumed fit: its rate counts only this run's steps
+        bar = self.train_progress_bar  # just made: its clock starts now
+        bar.total = trainer.max_steps if trainer.max_steps > 0 else None
+        bar.initial = bar.n = bar.last_print_n = trainer.global_step  # a resumed fit: its rate counts this run's steps
         bar.unit = "step"
-        bar.set_description(f"Epoch {trainer.current_epoch}")  # also when resuming mid-epoch
+        bar.set_description(f"Epoch {trainer.current_epoch}")  # draws it once, at its step (also mid-epoch)
 
     def on_train_epoch_start(self, trainer: lightning.Trainer, *_: Any) -> None:
         self.train_progress_bar.set_description(f"Epoch {trainer.current_epoch}", refresh=False)

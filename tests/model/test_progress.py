@@ -49,13 +49,17 @@ def test_the_bar_runs_once_over_every_step_of_short_epochs(tmp_path):
     assert "loss=" in str(bar.train_progress_bar.postfix)
 
 
-def test_a_resumed_fit_counts_on_from_the_checkpoints_step(tmp_path):
+def test_a_resumed_fit_counts_on_from_the_checkpoints_step(tmp_path, capsys):
     first, _ = fit_regression(tmp_path, max_steps=5)
     checkpoint = tmp_path / "five.ckpt"
     first.save_checkpoint(checkpoint)
+    capsys.readouterr()
     _, bar = fit_regression(tmp_path, max_steps=10, ckpt_path=checkpoint)
     progress = bar.train_progress_bar
     assert (progress.initial, progress.n, progress.total) == (5, 10, 10)
+    shown = capsys.readouterr().out.replace("\r", "\n").splitlines()
+    steps_shown = [line for line in shown if "/10 " in line]
+    assert steps_shown and not any(" 0/10 " in line for line in steps_shown), steps_shown  # never back to 0
 
 
 def test_the_cli_shows_steps_of_the_whole_fit(built_shards, tmp_path, capsys):
