@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -30,9 +29,11 @@ import torch._inductor.config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.machine import describe_machine  # noqa: E402
 from finetune import load_pretrained  # noqa: E402
 from finetune.agent import Agent  # noqa: E402
 from finetune.config import FinetuneConfig  # noqa: E402
+from finetune.envs.vector import make_vector_env  # noqa: E402  (sets MUJOCO_GL: the settings line shows the choice)
 from finetune.pretrained import k1_embedding  # noqa: E402
 from model.config import WorldModelConfig  # noqa: E402
 from model.export import export_frozen  # noqa: E402
@@ -104,8 +105,6 @@ def bench_acting(agent: Agent, envs: int, seconds: float) -> tuple[float, float]
 
 def bench_envs(task: str, num_envs: int, seconds: float, fast_render: bool, pin: bool) -> tuple[float, float]:
     """-> (seconds to start the envs, agent steps per second summed over them)."""
-    from finetune.envs.vector import make_vector_env
-
     start = time.perf_counter()
     envs = make_vector_env(task, list(range(num_envs)), pin, fast_render=fast_render)
     envs.reset()
@@ -158,10 +157,9 @@ def main() -> None:
     env_counts = args.envs if args.envs is not None else ([1, 4, 8] if cuda else [1, 2])
     fast_render = (not cuda) if args.fast_render is None else args.fast_render
 
-    gpu = torch.cuda.get_device_name(device) if cuda else "no GPU"
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}, {gpu}; "
-          f"torch {torch.__version__}, {args.threads} torch thread(s), MUJOCO_GL={os.environ.get('MUJOCO_GL', 'unset')}")
-    print(f"setting: {setting}, imagination horizon 15, {updates} timed updates after warm-up")
+    print(f"machine: {describe_machine(str(device))}")
+    print(f"setting: {setting}, imagination horizon 15, {updates} timed updates after warm-up; {args.threads} torch "
+          f"thread(s), MUJOCO_GL={os.environ.get('MUJOCO_GL', 'unset')}")
     print(f"\n{'agent':<8} {'mode':<16} {'first update s':>15} {'updates/s':>10}")
     for kind in args.agents:
         for mode in modes:

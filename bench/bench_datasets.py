@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -28,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from finetune.envs import make_env  # noqa: E402  (sets MUJOCO_GL before mujoco loads)
 
-from bench.bench_envs import cpu_name  # noqa: E402
+from bench.machine import describe_machine  # noqa: E402
 from finetune.datasets import load_episodes, write_dataset  # noqa: E402
 from finetune.datasets.sources import ExpertPolicy, RandomPolicy  # noqa: E402
 from finetune.datasets.summary import Summary  # noqa: E402
@@ -46,8 +45,7 @@ def main() -> int:
     parser.add_argument("--episodes", type=int, default=5, help="full-length episodes per source")
     parser.add_argument("--noise", type=float, default=0.5, help="action noise of the medium source")
     args = parser.parse_args()
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    print(f"machine: {cpu_name()}, {os.cpu_count()} cores visible, {platform.platform()}, load average {load}")
+    print(f"machine: {describe_machine()}")
     print(f"settings: {args.task}, {args.episodes} episodes per source, fast_render, seed 0, MUJOCO_GL="
           f"{os.environ['MUJOCO_GL']}; minari {version('minari')}, h5py {version('h5py')}, Pillow {version('pillow')}")
 

@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import csv
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -49,6 +48,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.machine import describe_machine  # noqa: E402
 
 TASK = "metaworld_drawer_close"  # without --from-run: Meta-World's scripted expert makes the data free
 ENV = dict(action_repeat=2, time_limit=100, fast_render=True)
@@ -160,8 +161,8 @@ def read_rows(path: Path) -> list[dict[str, str]]:
 
 def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[float, float, float]]) -> None:
     low, high = refs["random"][0], refs["expert"][0]
-    print(f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; "
-          f"task {args.task}, {args.env}, seed {args.seed}")
+    print(f"\nmachine: {describe_machine(args.sizes['device'])}")
+    print(f"settings: task {args.task}, {args.env}, seed {args.seed}")
     print(f"{'run':<28} {'at':>8} {f'return ({args.eval_episodes} episodes)':>22} {'normalised':>11} {'success':>8} "
           f"{'u dataset':>10} {'u imagined':>11}")
     for name, (mean, std, success) in refs.items():

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 from importlib.metadata import version
@@ -27,12 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from finetune.envs import PAPER_TASKS, make_env  # noqa: E402  (sets MUJOCO_GL before mujoco loads)
 
-
-def cpu_name() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown CPU"
+from bench.machine import describe_machine  # noqa: E402
 
 
 def measure(task: str, fast_render: bool, seconds: float, min_steps: int) -> tuple[float, int, np.ndarray]:
@@ -59,8 +53,7 @@ def main() -> int:
     parser.add_argument("--min-steps", type=int, default=5, help="agent steps per task and mode at least")
     args = parser.parse_args()
 
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    print(f"machine: {cpu_name()}, {os.cpu_count()} cores visible, {platform.platform()}, load average {load}")
+    print(f"machine: {describe_machine()}")
     print(
         f"settings: MUJOCO_GL={os.environ['MUJOCO_GL']}, 64x64 frames, one process, random actions, seed 0; "
         f"mujoco {version('mujoco')}, dm-control {version('dm-control')}, metaworld {version('metaworld')}, "

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 from pathlib import Path
 
@@ -29,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from bench.bench_learning import UniformOrConstant  # noqa: E402
+from bench.machine import describe_machine  # noqa: E402
 from finetune.rollout import play_episode  # noqa: E402
 from bench.bench_model_actions import constant_policy  # noqa: E402
 from finetune.config import load_config  # noqa: E402
@@ -75,7 +75,7 @@ def main() -> None:
     frozen = agent.world_model.frozen.rssm
     table = drift_table(feats[..., :frozen.feature_dim], frozen.deter_dim)
 
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}")
+    print(f"machine: {describe_machine()}")
     print(f"export {args.pretrained} (deter {frozen.deter_dim}, stoch {frozen.stoch_dim}, M = {frozen.ensemble}), "
           f"task {args.task}, action repeat {args.action_repeat}, {args.episodes} random episodes, "
           f"{feats.shape[1]} posterior states, ensemble-mean imagination")

@@ -30,9 +30,9 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import logging
 import math
 import os
-import platform
 import resource
 import statistics
 import sys
@@ -47,6 +47,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.loader import MANIFEST_FILE, WORKER_PRIORITIES, SequenceDataset, shard_set  # noqa: E402
 from model.cli import lightning_cli  # noqa: E402
 from model.config import WorldModelConfig  # noqa: E402
@@ -96,16 +97,6 @@ def reset(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
-
-
-def machine(device: torch.device) -> str:
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
-    accelerator = (f"{torch.cuda.get_device_name(device)}, CUDA {torch.version.cuda}" if device.type == "cuda"
-                   else "no GPU")
-    return (f"{accelerator}; {cpu}, {len(os.sched_getaffinity(0))} CPU cores; torch {torch.__version__}, "
-            f"lightning {L.__version__}, Python {platform.python_version()}; load average "
-            f"{os.getloadavg()[0]:.1f} at the start")
 
 
 def sample_shards(work: Path) -> Path:
@@ -241,6 +232,8 @@ def main() -> None:
     parser.add_argument("--log-every", type=int, default=None, help="fit's log_every_n_steps (default: the config's)")
     parser.add_argument("--rounds", type=int, default=None, help="times the fits run (GPU: 1; CPU: 3, each bracketed)")
     args = parser.parse_args()
+    for name in ("lightning.pytorch", "lightning.fabric"):  # not each fit's banner ("GPU available", tips, seed)
+        logging.getLogger(name).setLevel(logging.WARNING)
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -262,7 +255,7 @@ def main() -> None:
     worker_priority = args.worker_priority or loaded["data"].get("worker_priority", "normal")
     fit_length = loaded["data"]["seq_len"]
 
-    print(f"machine: {machine(device)}")
+    print(f"machine: {describe_machine(str(device))}")
     sizes = model["world_model"]
     print(f"settings: {config.relative_to(ROOT)} (M {sizes.ensemble}, deter {sizes.deter}, stoch {sizes.stoch}, "
           f"batch {batch_size}, K_max {k_max}), "
@@ -270,7 +263,7 @@ def main() -> None:
           f"{WARM_UP} warm-up + {steps} timed steps; fit: L {fit_length}, model.compile "
           f"{loaded['model'].get('compile', 'off')}, {workers} workers ({worker_priority} priority), "
           f"log every {log_every} steps; "
-          f"{torch.get_num_threads()} torch threads", flush=True)
+          f"{torch.get_num_threads()} torch threads; lightning {L.__version__}", flush=True)
     work = Path(tempfile.mkdtemp(prefix="bench-gpu-"))
     started = time.perf_counter()
     shards = args.shards or sample_shards(work)

@@ -23,8 +23,6 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -33,8 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import torch  # noqa: E402
-
+from bench.machine import describe_machine  # noqa: E402
 from finetune.config import load_config, parse_override  # noqa: E402
 from finetune.train import train  # noqa: E402
 
@@ -172,9 +169,8 @@ def main() -> None:
     cfg = load_config(None, dict(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir, steps=done, **settings))
     if args.agent == "hauwm":  # the new stream takes the export's sizes
         cfg = dataclasses.replace(cfg, deter=None, stoch=None)
-    gpu = torch.cuda.get_device_name() if cfg.device.startswith("cuda") and torch.cuda.is_available() else "CPU"
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs (shared), torch {torch.__version__}, {gpu}")
-    print(f"task {args.task}, agent {args.agent}, budget {args.minutes} min, "
+    print(f"machine: {describe_machine(cfg.device)}")
+    print(f"settings: task {args.task}, agent {args.agent}, budget {args.minutes} min, "
           f"settings { {key: getattr(cfg, key) for key in (*settings, 'layer_norm')} }", flush=True)
     start = time.perf_counter()
     while time.perf_counter() - start < args.minutes * 60:

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import os
-import platform
 import resource
 import sys
 import tempfile
@@ -33,16 +31,11 @@ import cv2  # noqa: E402
 import torch  # noqa: E402
 from torch.utils.data import DataLoader  # noqa: E402
 
+from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.build import BuildConfig, build  # noqa: E402
 from data_pipeline.loader import (SequenceDataset, _init_worker, make_dataloader, read_manifest,  # noqa: E402
                                   shard_set)
 from data_pipeline.sample_data import make_sample_data  # noqa: E402
-
-
-def machine() -> str:
-    model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                  if line.startswith("model name")), platform.processor())
-    return f"{model}, {len(os.sched_getaffinity(0))} cores available, torch {torch.__version__}"
 
 
 def cpu_seconds() -> float:
@@ -97,7 +90,7 @@ def main() -> None:
         build(BuildConfig(annotations=work / "ssv2" / "annotations", videos=work / "ssv2" / "videos", out=shards,
                           splits=["train"], clips_per_shard=8, encoding=args.encoding, workers=2),
               log=lambda message: None)
-    print(f"machine: {machine()}, load average {os.getloadavg()[0]:.1f} at the start")
+    print(f"machine: {describe_machine()}")
     encoding = read_manifest(shards)["settings"]["encoding"]
     print(f"settings: L={args.seq_len}, K_max={args.k_max}, batch {args.batch_size}, shuffle buffer 256, "
           f"{encoding} shards {shards}")

@@ -14,8 +14,6 @@ episode per constant action: on cartpole balance holding still (0) scores far mo
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -27,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from bench.bench_learning import CPU_SETTINGS, UniformOrConstant  # noqa: E402
+from bench.machine import describe_machine  # noqa: E402
 from finetune.rollout import play_episode  # noqa: E402
 from finetune.agent import Agent  # noqa: E402
 from finetune.behavior import TruncatedNormal  # noqa: E402
@@ -66,8 +65,8 @@ def main() -> None:
     cfg = load_config(None, {**CPU_SETTINGS, "task": args.task, "agent": "scratch", "seed": args.seed})
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(args.seed)
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs (shared), torch {torch.__version__}, 1 thread")
-    print(f"task {args.task}, action repeat {cfg.action_repeat}, {args.episodes} random episodes, batch "
+    print(f"machine: {describe_machine()}")
+    print(f"settings: 1 torch thread, task {args.task}, action repeat {cfg.action_repeat}, {args.episodes} random episodes, batch "
           f"{cfg.batch_size} × {cfg.seq_len}, deter {cfg.deter}, stoch {cfg.stoch}, encoder width {cfg.encoder_width}")
     env = make_env(args.task, seed=args.seed, action_repeat=cfg.action_repeat, fast_render=True)
     if env.action_space.shape != (1,):

@@ -13,10 +13,15 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
-import platform
 import resource
 import statistics
+import sys
 import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.machine import describe_machine  # noqa: E402
 
 SIZES = {  # world-model sizes (configs/pretrain/tiny.yaml and ssv2.yaml) and batch shape
     "tiny": dict(model=dict(cnn_width=8, embed_dim=64, deter=64, stoch=16, hidden=64, temporal_dim=16), batch=8, length=12),
@@ -81,10 +86,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=os.cpu_count())
     parser.add_argument("--skip-paper", action="store_true", help="only the tiny sizes (the paper's take minutes)")
     args = parser.parse_args()
-    import torch
-
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
-          f"{args.threads} threads, float32, median of {args.steps} timed steps after 1 warm-up")
+    print(f"machine: {describe_machine()}")
+    print(f"settings: {args.threads} threads, float32, median of {args.steps} timed steps after 1 warm-up")
     print(f"{'setting':<34} {'batch×len':>9} {'s/step':>8} {'peak RSS MB':>12}")
     ratios = []
     for size in ["tiny"] if args.skip_paper else ["tiny", "paper"]:

@@ -15,14 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from bench.machine import describe_machine  # noqa: E402
 
 
 def built_in_shards(out: Path) -> Path:
@@ -77,11 +77,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO / "runs" / "bench-claim")
     parser.add_argument("--shards", type=Path, default=None, help="default: build the built-in data under --out")
     args, extra = parser.parse_known_args()
-    import torch
-
     result = run_claim(args.out, args.steps, args.shards, extra)
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}; "
-          f"tiny.yaml, {args.steps} steps each, extra flags {extra or 'none'}; "
+    print(f"machine: {describe_machine()}")
+    print(f"settings: tiny.yaml, {args.steps} steps each, extra flags {extra or 'none'}; "
           f"training took {result['train_seconds']['hcu']:.0f} s / {result['train_seconds']['no-hcu']:.0f} s")
     print(f"{'k':>3} {'disagreement HCU':>17} {'no HCU':>10} {'open-loop MSE HCU':>18} {'no HCU':>10}")
     for i, k in enumerate(result["hcu"]["k"]):

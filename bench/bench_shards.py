@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -25,6 +23,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.decode import decode_clip  # noqa: E402
 from data_pipeline.sample_data import make_sample_data  # noqa: E402
 from data_pipeline.ssv2 import load_split  # noqa: E402
@@ -46,12 +45,6 @@ print(json.dumps({"seconds": elapsed, "clips": split["clips"], "frames": split["
                   "main_cpu": own.ru_utime + own.ru_stime, "worker_cpu": workers.ru_utime + workers.ru_stime,
                   "main_rss_mb": own.ru_maxrss / 1024, "worker_rss_mb": workers.ru_maxrss / 1024}))
 """
-
-
-def machine() -> str:
-    model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                  if line.startswith("model name")), platform.processor())
-    return f"{model}, {len(os.sched_getaffinity(0))} cores available, Python {platform.python_version()}"
 
 
 def run_build(data: Path, out: Path, workers: int, max_clips: int | None, encoding: str = "jpeg") -> dict:
@@ -81,7 +74,7 @@ def main() -> None:
     data = work / "ssv2"
     if not (data / "annotations").is_dir():
         make_sample_data(data, args.clips, workers=2)
-    print(f"machine: {machine()}, load average {os.getloadavg()[0]:.1f} at the start")
+    print(f"machine: {describe_machine()}")
     seconds, cpu, clips, frames = bare_loop(data)
     bare_fps = frames / cpu
     print(f"data: {clips} train clips, {frames} frames (sample data, 240 px high VP9, 24–60 frames per clip)")

@@ -1,0 +1,43 @@
+"""The `machine:` line that every bench script prints before its figures.
+
+A figure in bench/README.md is only comparable with one from the same machine, so each script names it the same
+way: the CPU model, the CPUs this process may use (taskset and SLURM cpusets shrink them) of those the machine has,
+the GPU, the versions of Python and torch, and the load average when the bench started (a busy shared machine
+slows every figure). Settings that belong to one bench (threads, MUJOCO_GL, sizes) go on its own `settings:` line.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+
+def cpu_model() -> str:
+    """The CPU's marketing name from /proc/cpuinfo (Linux), else what `platform` knows."""
+    cpuinfo = Path("/proc/cpuinfo")
+    for line in cpuinfo.read_text().splitlines() if cpuinfo.exists() else []:
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine() or "unknown CPU"
+
+
+def gpu_name(device: str = "cpu") -> str:
+    """The GPU behind `device` and its CUDA version, or "no GPU" for a CPU device."""
+    if not str(device).startswith("cuda"):
+        return "no GPU"
+    import torch  # only a CUDA bench asks, and it has torch loaded already
+
+    return f"{torch.cuda.get_device_name(device)}, CUDA {torch.version.cuda}"
+
+
+def describe_machine(device: str = "cpu") -> str:
+    """One line: CPU, usable/all CPUs, GPU, Python and torch versions, load average now."""
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    try:
+        torch_version = f"torch {version('torch')}"
+    except PackageNotFoundError:
+        torch_version = "no torch"
+    return (f"{cpu_model()}, {usable} of {os.cpu_count()} CPUs usable; {gpu_name(device)}; "
+            f"Python {platform.python_version()}, {torch_version}; load average {os.getloadavg()[0]:.1f}")

@@ -1,0 +1,51 @@
+"""The bench scripts start, and the GPU session's first command runs end to end on the CPU.
+
+A GPU is lent to few sessions and for 30 minutes: `bench/bench_gpu.py` and `bench/bench_agent.py --device cuda`
+are what such a session runs first (bench/README.md), so a script that no longer imports must be caught here,
+not there. The figures themselves are bench output, never asserted (they depend on the machine).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+SCRIPTS = sorted((REPO / "bench").glob("*.py"))
+sys.path.insert(0, str(REPO))
+
+from bench.machine import describe_machine  # noqa: E402
+
+
+def run_script(script: Path, *args: str, timeout: float) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(script), *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.mark.parametrize("script", [s for s in SCRIPTS if s.name != "machine.py"], ids=lambda s: s.name)
+def test_every_bench_script_starts(script):
+    done = run_script(script, "--help", timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "usage:" in done.stdout
+
+
+def test_the_machine_line_names_the_usable_cpus_and_the_accelerator():
+    line = describe_machine("cpu")
+    assert f"{len(os.sched_getaffinity(0))} of {os.cpu_count()} CPUs usable" in line
+    assert "no GPU" in line and "torch " in line and "load average" in line
+
+
+@pytest.mark.slow
+def test_bench_gpu_runs_on_the_cpu(built_shards):
+    done = run_script(REPO / "bench" / "bench_gpu.py", "--device", "cpu", "--shards", str(built_shards),
+                      "--steps", "2", "--fit-steps", "8", "--rounds", "1", timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    shown = done.stdout
+    assert shown.startswith("machine: ") and "no GPU" in shown.splitlines()[0]
+    for row in ("eager ", "compiled (default)", "(a) long epochs", "(b) short epochs"):
+        assert row in shown, shown
+    assert "aim ≥ 0.9×" in shown
