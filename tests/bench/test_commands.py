@@ -1,4 +1,4 @@
-"""The bench scripts start, and the GPU session's first command runs end to end on the CPU.
+"""The bench scripts start, and the GPU session's first commands run end to end on the CPU.
 
 A GPU is lent to few sessions and for 30 minutes: `bench/bench_gpu.py` and `bench/bench_agent.py --device cuda`
 are what such a session runs first (bench/README.md), so a script that no longer imports must be caught here,
@@ -49,3 +49,14 @@ def test_bench_gpu_runs_on_the_cpu(built_shards):
     for row in ("eager ", "compiled (default)", "(a) long epochs", "(b) short epochs"):
         assert row in shown, shown
     assert "aim ≥ 0.9×" in shown
+
+
+@pytest.mark.slow
+def test_bench_agent_runs_on_the_cpu():
+    done = run_script(REPO / "bench" / "bench_agent.py", "--compile", "off", "--updates", "1", "--seconds", "1",
+                      "--envs", "1", "2", "--act-batches", "1", timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    shown = done.stdout
+    assert shown.startswith("machine: ") and "MUJOCO_GL=" in shown and "MUJOCO_GL=unset" not in shown
+    for row in ("hauwm    eager", "scratch  eager", "agent steps/s summed over the envs"):
+        assert row in shown, shown
