@@ -72,7 +72,7 @@ test-floor:
 	$(FLOOR)/bin/python -m pip install --quiet torch==2.11.0 torchvision==0.26.0 -e ".[test]" -c $(FLOOR)/constraints.txt
 	$(FLOOR)/bin/python -m pytest -m "slow or not slow"
 
-# speed figures (minutes); the paper-claim, learning and world-model action checks take ~10, ~25 and ~10 minutes: `make bench-checks`
+# speed figures (minutes); the paper-claim, learning and world-model action checks take ~3, ~25 and ~10 minutes: `make bench-checks`
 BENCH_SPEED := bench/bench_shards.py bench/bench_loader.py bench/bench_pretrain.py bench/bench_envs.py bench/bench_agent.py bench/bench_datasets.py
 BENCH_CHECKS := bench/bench_pretrain_claim.py bench/bench_learning.py bench/bench_model_actions.py
 

@@ -85,8 +85,8 @@ def main() -> None:
     for i, k in enumerate(result["hcu"]["k"]):
         print(f"{k:>3} {result['hcu']['disagreement'][i]:17.5f} {result['no_hcu']['disagreement'][i]:10.5f} "
               f"{result['hcu']['recon_mse'][i]:18.5f} {result['no_hcu']['recon_mse'][i]:10.5f}")
-    print(f"Spearman ρ(k, disagreement): HCU {result['hcu']['spearman_k_disagreement']}, "
-          f"no HCU {result['no_hcu']['spearman_k_disagreement']}")
+    print(f"Spearman ρ(k, disagreement): HCU {result['hcu']['spearman_k_disagreement']:.2f}, "
+          f"no HCU {result['no_hcu']['spearman_k_disagreement']:.2f}")
     print(f"open-loop MSE over all k: HCU {result['hcu']['recon_mse_all']:.5f}, no HCU {result['no_hcu']['recon_mse_all']:.5f}")
     for claim, holds in result["claims"].items():
         print(f"{'PASS' if holds else 'FAIL'}  {claim}")
