@@ -171,7 +171,7 @@ def main() -> None:
         cfg = dataclasses.replace(cfg, deter=None, stoch=None)
     print(f"machine: {describe_machine(cfg.device)}")
     print(f"settings: task {args.task}, agent {args.agent}, budget {args.minutes} min, "
-          f"settings { {key: getattr(cfg, key) for key in (*settings, 'layer_norm')} }", flush=True)
+          f"config { {key: getattr(cfg, key) for key in (*settings, 'layer_norm')} }", flush=True)
     start = time.perf_counter()
     while time.perf_counter() - start < args.minutes * 60:
         cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)

@@ -66,8 +66,9 @@ def main() -> None:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(args.seed)
     print(f"machine: {describe_machine()}")
-    print(f"settings: 1 torch thread, task {args.task}, action repeat {cfg.action_repeat}, {args.episodes} random episodes, batch "
-          f"{cfg.batch_size} × {cfg.seq_len}, deter {cfg.deter}, stoch {cfg.stoch}, encoder width {cfg.encoder_width}")
+    print(f"settings: 1 torch thread, task {args.task}, action repeat {cfg.action_repeat}, {args.episodes} random "
+          f"episodes, batch {cfg.batch_size} × {cfg.seq_len}, deter {cfg.deter}, stoch {cfg.stoch}, encoder width "
+          f"{cfg.encoder_width}")
     env = make_env(args.task, seed=args.seed, action_repeat=cfg.action_repeat, fast_render=True)
     if env.action_space.shape != (1,):
         raise SystemExit(f"{args.task} has actions of shape {env.action_space.shape}; this probe needs one action dim")

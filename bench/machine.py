@@ -29,6 +29,8 @@ def gpu_name(device: str = "cpu") -> str:
         return "no GPU"
     import torch  # only a CUDA bench asks, and it has torch loaded already
 
+    if not torch.cuda.is_available():  # the bench's own first CUDA call will say why
+        return f"no GPU, although {device} was asked for"
     return f"{torch.cuda.get_device_name(device)}, CUDA {torch.version.cuda}"
 
 
