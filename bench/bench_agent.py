@@ -158,7 +158,7 @@ def main() -> None:
     fast_render = (not cuda) if args.fast_render is None else args.fast_render
 
     print(f"machine: {describe_machine(str(device))}")
-    print(f"setting: {setting}, imagination horizon 15, {updates} timed updates after warm-up; {args.threads} torch "
+    print(f"settings: {setting}, imagination horizon 15, {updates} timed updates after warm-up; {args.threads} torch "
           f"thread(s), MUJOCO_GL={os.environ.get('MUJOCO_GL', 'unset')}")
     print(f"\n{'agent':<8} {'mode':<16} {'first update s':>15} {'updates/s':>10}")
     for kind in args.agents:
