@@ -8,6 +8,7 @@ environment steps (frames: one agent step is `action_repeat` of them), as in the
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +25,20 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "penalty": PENALTIES,
     "expert_latents": ("imagined", "posterior"),
 }
+
+
+# allowed ranges of the numeric settings (a None setting, "the export's" or "the suite's own", is not checked)
+RANGES: tuple[tuple[tuple[str, ...], str, object], ...] = (
+    (("steps", "action_repeat", "time_limit", "replay_capacity", "batch_size", "seq_len", "train_every",
+      "eval_every", "eval_episodes", "log_every", "checkpoint_every", "deter", "stoch", "hidden", "model_heads",
+      "units", "encoder_width", "horizon", "num_envs"), "at least 1", lambda v: v >= 1),
+    (("seed", "threads", "prefill", "noise_std", "kl_scale", "free_nats", "entropy_scale", "penalty_scale",
+      "penalty_frozen_weight", "disc_gp_scale"), ">= 0", lambda v: v >= 0),
+    (("model_lr", "actor_lr", "critic_lr", "disc_lr", "grad_clip", "k1_clip_length"), "> 0", lambda v: v > 0),
+    (("gamma", "lam", "kl_balance"), "between 0 and 1", lambda v: 0 <= v <= 1),
+    (("target_fraction",), "in (0, 1]", lambda v: 0 < v <= 1),
+    (("demo_fraction",), "strictly between 0 and 1", lambda v: 0 < v < 1),
+)
 
 
 class ConfigError(ValueError):
@@ -105,14 +120,11 @@ class FinetuneConfig:
         for name, allowed in CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"setting {name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
-        if self.num_envs < 1:
-            raise ConfigError(f"setting num_envs must be at least 1, got {self.num_envs}")
-        if self.model_heads < 1:
-            raise ConfigError(f"setting model_heads must be >= 1, got {self.model_heads}")
-        if not 0.0 < self.demo_fraction < 1.0:
-            raise ConfigError(f"setting demo_fraction must lie strictly between 0 and 1, got {self.demo_fraction}")
-        if min(self.penalty_scale, self.penalty_frozen_weight, self.disc_gp_scale) < 0:
-            raise ConfigError("settings penalty_scale, penalty_frozen_weight and disc_gp_scale must be >= 0")
+        for names, rule, allowed in RANGES:
+            for name in names:
+                value = getattr(self, name)
+                if value is not None and not allowed(value):
+                    raise ConfigError(f"setting {name} must be {rule}, got {value!r}")
         if self.paradigm == "offline" and self.penalty != "max_std" and self.penalty_scale > 0 and self.model_heads < 2:
             raise ConfigError(f"penalty {self.penalty!r} measures disagreement between the new stream's prior heads: "
                               f"offline RL needs model_heads >= 2 (LOMPO: 7), got {self.model_heads}; or penalty_scale=0")
@@ -137,16 +149,22 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
         raise ConfigError(f"unknown setting(s) {unknown} in {path or 'overrides'}; known: {sorted(fields)}")
     if values.get("compile") is False:  # YAML reads a bare `off` as false
         values["compile"] = "off"
+    types = typing.get_type_hints(FinetuneConfig)
+    whole_numbers = {name: types[name] in (int, int | None) for name in fields}
     for name, value in values.items():
-        default = fields[name].default
-        if isinstance(default, bool) and not isinstance(value, bool):
+        if types[name] is bool and not isinstance(value, bool):
             raise ConfigError(f"setting {name} must be true or false, got {value!r}")
-        if isinstance(default, (int, float)) and not isinstance(default, bool) and isinstance(value, (int, float, str)):
+        optional = types[name] in (int | None, float | None)  # None means "the export's" or "the suite's own"
+        if types[name] in (int, float) or (optional and value is not None):
             try:
+                if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+                    raise ValueError
                 number = float(value)  # YAML reads 1e6 as a string
             except ValueError:
                 raise ConfigError(f"setting {name} must be a number, got {value!r}") from None
-            values[name] = int(number) if isinstance(default, int) else number
+            if whole_numbers[name] and not number.is_integer():
+                raise ConfigError(f"setting {name} must be a whole number, got {value!r}")
+            values[name] = int(number) if whole_numbers[name] else number
     return FinetuneConfig(**values)
 
 

@@ -15,6 +15,7 @@ tensor's name and shape against the architecture the config describes.
 from __future__ import annotations
 
 import json
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -137,8 +138,13 @@ def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dic
         raise ExportError(f"checkpoint {path} not found (fit writes RUN/checkpoints/last.ckpt)")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # a truncated file, or one holding more than tensors and plain data
-        raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit` ({err})") from None
+    except pickle.UnpicklingError:  # torch's own message here suggests weights_only=False: unsafe, and no fix
+        raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit`: it is not a "
+                          "checkpoint, or one that holds more than tensors and plain data") from None
+    except Exception as err:  # a truncated or otherwise damaged file
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit`: it is truncated "
+                          f"or not a checkpoint ({reason}); export another one, e.g. RUN/checkpoints/last.ckpt") from None
     hparams = state.get("hyper_parameters", {})
     try:  # the settings under "world_model", or flat in checkpoints written before WorldModelConfig
         config = WorldModelConfig.from_dict(saved_settings(hparams))

@@ -44,9 +44,9 @@ from model.rssm import Observation, RSSMState
 from model.world_model import WorldModel
 
 
-def check_settings(
-    world_model: WorldModelConfig, k_max: int, lambda_init: float, kl_balance: float, hcu_target: float
-) -> None:
+def check_settings(world_model: WorldModelConfig, k_max: int, lambda_init: float, kl_balance: float,
+                   hcu_target: float, lr: float, lambda_lr: float, grad_clip: float, kl_scale: float) -> None:
+    """Raise ConfigError naming the first setting out of its range, before anything is built."""
     world_model.validate()
     if lambda_init > 0 and world_model.ensemble < 2:
         raise ConfigError(
@@ -60,8 +60,12 @@ def check_settings(
         raise ConfigError(f"k_max (the largest frame gap) must be ≥ 1, got {k_max}; set --data.k_max 1 or more")
     if not 0.0 <= kl_balance <= 1.0:
         raise ConfigError(f"model.kl_balance must lie in [0, 1], got {kl_balance}")
-    if hcu_target <= 0:
-        raise ConfigError(f"model.hcu_target must be positive, got {hcu_target}")
+    for name, value in (("hcu_target", hcu_target), ("lr", lr), ("grad_clip", grad_clip)):
+        if not value > 0:
+            raise ConfigError(f"model.{name} must be positive, got {value}")
+    for name, value in (("lambda_lr", lambda_lr), ("kl_scale", kl_scale)):
+        if not value >= 0:
+            raise ConfigError(f"model.{name} must be ≥ 0, got {value}")
 
 
 def refuse_other_size(saved: Mapping[str, Any], asked: WorldModelConfig, source: str) -> None:
@@ -142,7 +146,7 @@ class PretrainModule(L.LightningModule):
         super().__init__()
         if isinstance(world_model, Mapping):  # load_from_checkpoint of a module built without the CLI passes the dict
             world_model = WorldModelConfig.from_dict(world_model)
-        check_settings(world_model, k_max, lambda_init, kl_balance, hcu_target)
+        check_settings(world_model, k_max, lambda_init, kl_balance, hcu_target, lr, lambda_lr, grad_clip, kl_scale)
         self.save_hyperparameters()
         self.save_hyperparameters({"world_model": world_model.to_dict()})  # plain data: weights_only=True loads it
         self.automatic_optimization = False

@@ -64,7 +64,7 @@ def test_downstream_demo_configs_are_small_drawer_close_runs(paradigm):
 def test_bad_downstream_settings_are_refused():
     for settings, message in [({"paradigm": "batch"}, "paradigm must be one of"),
                               ({"imagine_heads": "all"}, "imagine_heads must be one of"),
-                              ({"model_heads": 0}, "model_heads must be >= 1"),
+                              ({"model_heads": 0}, "model_heads must be at least 1"),
                               ({"penalty_scale": -1}, "must be >= 0")]:
         with pytest.raises(ConfigError, match=message):
             load_config(None, settings)
@@ -79,3 +79,19 @@ def test_speed_settings_are_checked():
         load_config(None, {"num_envs": 0})
     with pytest.raises(ConfigError, match="conv_bf16 must be true or false"):
         load_config(None, {"conv_bf16": "yes"})
+
+
+def test_numeric_settings_are_range_checked():
+    """A negative budget or a fractional batch is refused by name, not run (nor rounded) silently."""
+    for settings, message in [({"steps": -5}, "steps must be at least 1, got -5"),
+                              ({"batch_size": 1.5}, "batch_size must be a whole number, got 1.5"),
+                              ({"deter": 2.5}, "deter must be a whole number"),
+                              ({"steps": None}, "steps must be a number, got None"),
+                              ({"steps": True}, "steps must be a number, got True"),
+                              ({"gamma": 1.5}, "gamma must be between 0 and 1"),
+                              ({"actor_lr": 0}, "actor_lr must be > 0"),
+                              ({"prefill": -1}, "prefill must be >= 0")]:
+        with pytest.raises(ConfigError, match=message):
+            load_config(None, settings)
+    cfg = load_config(None, {"time_limit": None, "deter": None, "prefill": 0, "steps": "1e6"})  # None: the suite's/export's
+    assert (cfg.time_limit, cfg.deter, cfg.prefill, cfg.steps) == (None, None, 0, 1_000_000)

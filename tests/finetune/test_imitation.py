@@ -144,7 +144,7 @@ def test_a_run_resumes_only_with_the_expert_latents_it_was_trained_with(export_d
 
 
 def test_bad_imitation_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_demos):
-    with pytest.raises(ConfigError, match="demo_fraction must lie strictly between 0 and 1"):
+    with pytest.raises(ConfigError, match="demo_fraction must be strictly between 0 and 1"):
         imitation_config(tiny_config, tmp_path, 16, demo_fraction=1.0)
     with pytest.raises(FinetuneError, match="--demos ID is needed"):
         train_imitation(imitation_config(tiny_config, tmp_path / "a", 16, demos=None), export_dir, progress=False)

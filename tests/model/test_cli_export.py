@@ -147,6 +147,7 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--model.world_model.ensemble", "1"], "HCU needs an ensemble of at least 2 heads"),
         (["--model.world_model.temporal_dim", "7"], "world_model.temporal_dim must be even"),
         (["--data.k_max", "0"], "k_max"),
+        (["--model.lr", "-1"], "model.lr must be positive"),
         (["--trainer.max_steps", "1", "--data.shards", "/nonexistent/shards"], "/nonexistent/shards does not exist"),
     ],
 )
@@ -174,9 +175,19 @@ def test_a_resume_keeps_this_runs_compile_setting(built_shards, tiny_run, tmp_pa
     assert config["model"]["compile"] == "default" and config["model"]["lr"] == 1e-3
 
 
-def test_export_of_a_missing_checkpoint_is_refused(tmp_path, capsys):
+def test_export_of_a_missing_or_damaged_checkpoint_is_refused(tiny_run, tmp_path, capsys):
     assert main(["export", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "out")]) == 2
     assert "none.ckpt not found" in capsys.readouterr().err
+    truncated = tmp_path / "truncated.ckpt"
+    truncated.write_bytes((tiny_run / "checkpoints" / "last.ckpt").read_bytes()[:5000])
+    not_a_checkpoint = tmp_path / "frames.npy"
+    not_a_checkpoint.write_bytes(b"\x93NUMPY" + bytes(100))
+    for path, reason in [(truncated, "it is truncated or not a checkpoint"), (not_a_checkpoint, "it is not a checkpoint")]:
+        assert main(["export", str(path), "--out", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert f"{path} cannot be read as a Lightning checkpoint" in err and reason in err
+        assert "weights_only" not in err and "Traceback" not in err  # not torch's advice to unpickle it unsafely
+    assert not (tmp_path / "out").exists()
 
 
 def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path):
