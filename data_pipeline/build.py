@@ -248,12 +248,16 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
     """Build (or resume) this part's shards; returns the manifest (None until all parts are done) and
     the exit status (1 when this part's error rate exceeds --max-error-rate)."""
     validate(config)
+    plans = plan_shards(config)
+    mine = [plan for i, plan in enumerate(plans) if i % config.num_parts == config.part]
+    ids = [record.id for plan in mine for record in plan.records]
+    if ids and not any((config.videos / f"{clip}.webm").is_file() for clip in ids):
+        raise BuildError(f"--videos {config.videos} holds none of this part's {len(ids)} clips (e.g. no "
+                         f"{ids[0]}.webm): point --videos at the directory of SSv2's <id>.webm files")
     config.out.mkdir(parents=True, exist_ok=True)
     settings = settings_of(config)
     check_settings(config.out, settings, config.part)
     digest = settings_digest(settings)
-    plans = plan_shards(config)
-    mine = [plan for i, plan in enumerate(plans) if i % config.num_parts == config.part]
     kept = {plan.name: stats for plan in mine if (stats := verified_stats(config.out, plan, digest)) is not None}
     todo = [plan for plan in mine if plan.name not in kept]
     valid = [r for plan in todo for r in plan.records if r.id and not any(c in r.id for c in "./\\")]

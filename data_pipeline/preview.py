@@ -16,6 +16,7 @@ from .sampling import gaps_of, sample_indices
 from .shard_format import decode_frames
 
 SCALE, LABEL_HEIGHT, CAPTION_HEIGHT = 2, 14, 16
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # what cv2.imwrite writes here
 
 
 def _clips(directory: Path, shards: list[dict]):
@@ -36,6 +37,8 @@ def _text(canvas: np.ndarray, text: str, x: int, y: int, scale: float = 0.35) ->
 def write_preview(directory: Path, out: Path, split: str | None = None, clips: int = 8, length: int = 8,
                   k_max: int = 5, seed: int = 0) -> None:
     directory, out = Path(directory), Path(out)
+    if out.suffix.lower() not in IMAGE_SUFFIXES:
+        raise ShardDirError(f"--out {out}: name an image file ending in {', '.join(IMAGE_SUFFIXES)}")
     manifest = load_manifest(directory)
     split = split or next(iter(manifest["splits"]))
     if split not in manifest["splits"]:
@@ -65,4 +68,4 @@ def write_preview(directory: Path, out: Path, split: str | None = None, clips: i
             _text(canvas, f"t={index}" + (f" k={gap}" if j else ""), j * side + 3, top + row_height - 3)
     out.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(out), canvas[:, :, ::-1]):
-        raise ShardDirError(f"cannot write {out} (is the directory writable and the name a .png?)")
+        raise ShardDirError(f"cannot write {out} (is its directory writable?)")

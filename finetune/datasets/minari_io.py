@@ -58,7 +58,8 @@ def check_dataset_id(dataset_id: str) -> None:
     match = DATASET_ID_RE.fullmatch(dataset_id)
     if match is None or match.group("version") is None:
         raise DatasetError(f"dataset ID {dataset_id!r} is not a Minari ID: write (namespace/)name-vN, "
-                           f"e.g. {ID_EXAMPLE} (letters, digits, - and _; the -vN version is required)")
+                           f"e.g. {ID_EXAMPLE} (letters, digits, - and _; a namespace of 2 characters or more; "
+                           "the -vN version is required)")
 
 
 def list_datasets() -> dict[str, dict[str, Any]]:

@@ -198,6 +198,10 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
     config.annotations, config.videos = sample_ssv2 / "annotations", tmp_path / "no-videos"
     with pytest.raises(BuildError, match="--videos .*no-videos: not a directory"):
         build(config, log=quiet)
+    config.videos = sample_ssv2 / "annotations"  # a directory, but not of the clips' videos
+    with pytest.raises(BuildError, match=r"--videos .*annotations holds none of this part's \d+ clips"):
+        build(config, log=quiet)
+    assert not config.out.exists()  # refused before anything was written
 
 
 @pytest.mark.slow

@@ -38,6 +38,8 @@ def test_preview_writes_a_grid_of_clips(built_shards, tmp_path):
     image = cv2.imread(str(out))
     assert image.shape[1] == 5 * 128 and image.shape[0] > 3 * 128
     assert image.std() > 10  # not blank
+    assert main(["preview", str(built_shards), "--out", str(tmp_path / "preview.txt")]) == 2
+    assert not (tmp_path / "preview.txt").exists()
 
 
 def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
