@@ -14,7 +14,9 @@ environment's reward (docs/downstream.md). Running again with the same --logdir 
 from __future__ import annotations
 
 import argparse
+import csv
 import sys
+from pathlib import Path
 
 # subcommand -> (paradigm, its data flag, the config setting that flag fills, help)
 SUBCOMMANDS = {
@@ -71,10 +73,23 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, PretrainedError, FinetuneError) as error:
         print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2
-    summary = ", ".join(f"{k} {v:.4g}" for k, v in result.items())
     kind = cfg.agent if paradigm == "online" else f"{cfg.agent}, {paradigm}"
-    print(f"finished {cfg.task} ({kind}) in {cfg.logdir}: {summary or 'no evaluation yet'}")
+    if result:
+        print(f"finished {cfg.task} ({kind}) in {cfg.logdir}: " + ", ".join(f"{k} {v:.4g}" for k, v in result.items()))
+    else:  # every run ends with an evaluation, so this one had nothing left to do
+        unit = "updates" if paradigm == "offline" else "env steps"
+        print(f"nothing to train: {cfg.logdir} has already run its budget of {cfg.steps} {unit} (a larger --steps "
+              f"goes on from its checkpoint); {last_evaluation(Path(cfg.logdir))}")
     return 0
+
+
+def last_evaluation(logdir: Path) -> str:
+    """The last row of a run's eval.csv, e.g. 'last evaluation at env_step 400: return 1.085, return_std 0'."""
+    rows = list(csv.DictReader((logdir / "eval.csv").open(newline=""))) if (logdir / "eval.csv").is_file() else []
+    if not rows:
+        return "no evaluation recorded"
+    (step_name, step), *values = rows[-1].items()
+    return f"last evaluation at {step_name} {step}: " + ", ".join(f"{k} {float(v):.4g}" for k, v in values if v)
 
 
 def _runner(paradigm: str):

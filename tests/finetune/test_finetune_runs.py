@@ -58,6 +58,11 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert [int(r["env_step"]) for r in rows(logdir / "eval.csv")] == [100, 200, 280]
     assert len(list((logdir / "replay").glob("*.npz"))) == 7
 
+    capsys.readouterr()
+    assert main(args + ["--steps", "200"]) == 0  # a budget the run has already spent: it says so, and changes nothing
+    assert "nothing to train" in (out := capsys.readouterr().out) and "last evaluation at env_step 280: return" in out
+    assert torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]["env_step"] == 280
+
 
 def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes, tmp_path, capsys):
     logdir = tmp_path / "run"
