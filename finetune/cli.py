@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
+import time
 from pathlib import Path
 
 # subcommand -> (paradigm, its data flag, the config setting that flag fills, help)
@@ -53,7 +54,7 @@ def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from finetune.config import ConfigError, load_config, parse_override
     from finetune.pretrained import PretrainedError
-    from finetune.train import FinetuneError
+    from finetune.train import CHECKPOINT, FinetuneError
 
     argv = sys.argv[1:] if argv is None else argv
     subcommand = argv[0] if argv and argv[0] in SUBCOMMANDS else None
@@ -73,6 +74,15 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, PretrainedError, FinetuneError) as error:
         print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # said below, once the run's frames (and its progress bar) are gone
+        result = None
+    if result is None:
+        checkpoint = Path(cfg.logdir) / CHECKPOINT
+        written = time.strftime("%H:%M:%S", time.localtime(checkpoint.stat().st_mtime)) if checkpoint.is_file() else ""
+        kept = (f"its last checkpoint, {checkpoint} (written {written}), is kept: the same command goes on from there"
+                if written else "no checkpoint was written yet: the same command starts it again")
+        print(f"{parser(subcommand).prog}: interrupted; {kept}", file=sys.stderr)
+        return 130
     kind = cfg.agent if paradigm == "online" else f"{cfg.agent}, {paradigm}"
     if result:
         print(f"finished {cfg.task} ({kind}) in {cfg.logdir}: " + ", ".join(f"{k} {v:.4g}" for k, v in result.items()))

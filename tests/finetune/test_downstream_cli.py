@@ -54,3 +54,16 @@ def test_a_missing_dataset_is_a_clear_error(export_dir, tmp_path, capsys):
             str(tmp_path / "run"), "--device", "cpu", "--no-progress", "--set", "units=32", "--set", "hidden=24"]
     assert main(args) == 2
     assert "--dataset ID is needed" in capsys.readouterr().err
+
+
+def test_an_interrupted_run_says_which_checkpoint_is_kept(monkeypatch, tmp_path, capsys):
+    def interrupted(cfg, pretrained, progress):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(finetune.train, "train", interrupted)
+    args = ["--config", "configs/finetune/demo.yaml", "--logdir", str(tmp_path)]
+    assert main(args) == 130
+    assert "interrupted; no checkpoint was written yet: the same command starts it again" in capsys.readouterr().err
+    (tmp_path / finetune.train.CHECKPOINT).write_bytes(b"")
+    assert main(args) == 130
+    assert f"its last checkpoint, {tmp_path / 'checkpoint.pt'} (written " in capsys.readouterr().err
