@@ -162,6 +162,10 @@ def analyze_command(argv: list[str]) -> int:
     parser.add_argument("--heads", type=int, default=4, help="ensemble heads shown side by side in the rollout figure")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    for flag, value, least in (("--batches", args.batches, 1), ("--heads", args.heads, 1),
+                               ("--seq-len", args.seq_len, 2)):  # a rollout needs a frame to see and one to imagine
+        if value < least:
+            parser.error(f"{flag} must be at least {least}, got {value}")
     written = analyze(args.model, args.shards, args.out, split=args.split, batches=args.batches,
                       batch_size=args.batch_size, seq_len=args.seq_len, k_max=args.k_max, heads=args.heads, seed=args.seed)
     for path in written:

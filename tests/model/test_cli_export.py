@@ -230,3 +230,12 @@ def test_16_mixed_asked_on_a_cpu_trains_in_bf16_mixed_with_float32_distributions
     with torch.autocast("cpu", dtype=torch.bfloat16):
         obs = module.world_model.observe(batch["frames"], batch["gaps"], batch["num_frames"])
     assert obs.prior_mean.dtype == obs.prior_std.dtype == obs.post_std.dtype == torch.float32
+
+
+@pytest.mark.parametrize(("flags", "message"), [(["--seq-len", "1"], "--seq-len must be at least 2, got 1"),
+                                                (["--batches", "0"], "--batches must be at least 1, got 0")])
+def test_analyze_refuses_settings_that_leave_nothing_to_measure(built_shards, tiny_export, tmp_path, capsys, flags,
+                                                                  message):
+    args = ["analyze", "--model", str(tiny_export), "--shards", str(built_shards), "--out", str(tmp_path / "a"), *flags]
+    assert main(args) == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
