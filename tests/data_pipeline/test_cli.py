@@ -4,6 +4,7 @@ import json
 import shutil
 
 import cv2
+import pytest
 
 from data_pipeline.cli import main
 from data_pipeline.sample_data import HEIGHT, split_sizes
@@ -57,3 +58,11 @@ def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
     labels = json.loads((annotations / "something-something-v2-labels.json").read_text())
     assert all(isinstance(index, str) for index in labels.values())
     assert json.loads((tmp_path / "broken.json").read_text()) == {}
+
+
+@pytest.mark.parametrize("argv", [["preview", "DIR", "--out", "p.png", "--clips", "0"],
+                                  ["sample-data", "--out", "OUT", "--clips", "-3"]])
+def test_counts_below_one_are_refused_by_flag(argv, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2 and "must be a whole number >= 1" in capsys.readouterr().err
