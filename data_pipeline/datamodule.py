@@ -41,6 +41,11 @@ class ShardDataModule(lightning.LightningDataModule):
         `worker_priority`: `normal`, or `idle` for workers that use only the cores the training step leaves
         free (Linux; for CPU-only runs on few cores, see `loader.check_worker_priority`)."""
         check_worker_priority(worker_priority)
+        for name, value, least in (("num_workers", num_workers, 0), ("val_batches", val_batches, 1)):
+            if value < least:
+                raise LoaderError(f"--data.{name} must be at least {least}, got {value}")
+        if not timeout > 0:
+            raise LoaderError(f"--data.timeout (seconds a worker may take for a batch) must be positive, got {timeout}")
         super().__init__()
         self.save_hyperparameters()
         self.train_set: SequenceDataset | None = None
@@ -62,8 +67,6 @@ class ShardDataModule(lightning.LightningDataModule):
             world_size = self.trainer.world_size if self.trainer is not None else 1
             usable = sum(n > 0 for n in val_shards.eligible(hp.seq_len))
             workers = max(0, min(hp.num_workers, usable // max(1, world_size)))
-            if hp.val_batches < 1:
-                raise LoaderError(f"val_batches must be at least 1, got {hp.val_batches}")
             self.val_set = SequenceDataset(val_shards, num_workers=workers, shuffle=False,
                                            batches_per_worker=max(1, hp.val_batches // max(1, workers)), **common)
 

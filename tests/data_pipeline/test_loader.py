@@ -157,9 +157,15 @@ def test_worker_priority_sets_the_workers_scheduling_class(built_shards, priorit
     del batches, loader
 
 
-def test_an_unknown_worker_priority_is_refused_with_the_flag(built_shards):
-    with pytest.raises(LoaderError, match=r"--data.worker_priority must be one of normal, idle, got 'low'"):
-        ShardDataModule(str(built_shards), worker_priority="low")
+@pytest.mark.parametrize(("settings", "message"), [
+    (dict(worker_priority="low"), r"--data.worker_priority must be one of normal, idle, got 'low'"),
+    (dict(num_workers=-1), "--data.num_workers must be at least 0, got -1"),
+    (dict(val_batches=0), "--data.val_batches must be at least 1, got 0"),
+    (dict(timeout=0), "--data.timeout .* must be positive, got 0"),
+])
+def test_bad_loader_settings_are_refused_with_the_flag(built_shards, settings, message):
+    with pytest.raises(LoaderError, match=message):
+        ShardDataModule(str(built_shards), **settings)
 
 
 def test_persistent_workers_follow_a_resume_position_set_between_epochs(built_shards):
