@@ -54,6 +54,7 @@ def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from finetune.config import ConfigError, load_config, parse_override
     from finetune.pretrained import PretrainedError
+    from finetune.replay import ReplayError
     from finetune.train import CHECKPOINT, FinetuneError
 
     argv = sys.argv[1:] if argv is None else argv
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
                               f"`{COMMANDS[cfg.paradigm]} --config {args.config} …`, or give `{COMMANDS[paradigm]}` "
                               f"a config from {CONFIG_DIRS[paradigm]}/")
         result = _runner(paradigm)(cfg, args.pretrained, progress=not args.no_progress)
-    except (ConfigError, PretrainedError, FinetuneError) as error:
+    except (ConfigError, PretrainedError, FinetuneError, ReplayError) as error:
         print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # said below, once the run's frames (and its progress bar) are gone

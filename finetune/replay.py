@@ -11,6 +11,7 @@ run reloads the newest episodes that fit.
 from __future__ import annotations
 
 import os
+import zipfile
 from collections import deque
 from pathlib import Path
 
@@ -24,10 +25,18 @@ def episode_files(directory: Path) -> list[Path]:
     return sorted(p for p in Path(directory).glob("*.npz") if not p.name.endswith(".tmp.npz"))
 
 
+class ReplayError(RuntimeError):
+    pass
+
+
 def read_episode(path: Path) -> dict[str, np.ndarray]:
     """One episode file: obs uint8 [T+1, 3, H, W], action float32 [T+1, A], reward float32 [T+1]."""
-    with np.load(path, allow_pickle=False) as data:
-        return {key: data[key] for key in KEYS}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in KEYS}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
+        raise ReplayError(f"{path}: this replay episode cannot be read ({err}); it is damaged: restore it, or delete "
+                          "it and the run goes on without that episode") from None
 
 
 class Replay:
@@ -57,7 +66,7 @@ class Replay:
         if self.directory is None or not self.directory.is_dir():
             return 0
         paths = episode_files(self.directory)
-        self.num_saved = len(paths)
+        self.num_saved = int(paths[-1].stem.split("-")[0]) + 1 if paths else 0  # a deleted file leaves a gap
         chosen, steps = [], 0
         for path in reversed(paths):
             length = int(path.stem.split("-")[1])

@@ -32,6 +32,7 @@ from finetune.config import FinetuneConfig
 from finetune.logger import Logger
 from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
+from model.export import torch_load_failure
 
 CHECKPOINT = "checkpoint.pt"
 LOCK = ".lock"
@@ -133,7 +134,11 @@ def settings_before_they_existed(paradigm: str) -> dict[str, object]:
 
 def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
                     rng: np.random.Generator | None = None) -> dict[str, int]:
-    state = torch.load(path, map_location=agent.device, weights_only=True)
+    try:
+        state = torch.load(path, map_location=agent.device, weights_only=True)
+    except Exception as err:
+        raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): restore it, or train in another "
+                            "--logdir") from None
     if state["export_sha256"] != fingerprint:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the same export or use another --logdir")

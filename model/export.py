@@ -131,6 +131,15 @@ def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> F
     return model.to(device).requires_grad_(False).eval()
 
 
+def torch_load_failure(err: Exception) -> str:
+    """Why torch.load(weights_only=True) refused a file, in one clause. torch's own messages run to paragraphs and,
+    for a pickle, advise weights_only=False: unsafe, and no fix for a damaged or foreign file."""
+    if isinstance(err, pickle.UnpicklingError):
+        return "it is not a checkpoint, or one that holds more than tensors and plain data"
+    reason = str(err).strip().split(". ")[0] or type(err).__name__
+    return f"it is truncated or not a checkpoint: {reason}"
+
+
 def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dict[str, Any]]:
     """The WorldModel inside a `hauwm pretrain fit` checkpoint and its provenance (read with weights_only=True)."""
     path = Path(checkpoint)
@@ -138,13 +147,9 @@ def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dic
         raise ExportError(f"checkpoint {path} not found (fit writes RUN/checkpoints/last.ckpt)")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:  # torch's own message here suggests weights_only=False: unsafe, and no fix
-        raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit`: it is not a "
-                          "checkpoint, or one that holds more than tensors and plain data") from None
-    except Exception as err:  # a truncated or otherwise damaged file
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit`: it is truncated "
-                          f"or not a checkpoint ({reason}); export another one, e.g. RUN/checkpoints/last.ckpt") from None
+    except Exception as err:
+        raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit` "
+                          f"({torch_load_failure(err)}); export another one, e.g. RUN/checkpoints/last.ckpt") from None
     hparams = state.get("hyper_parameters", {})
     try:  # the settings under "world_model", or flat in checkpoints written before WorldModelConfig
         config = WorldModelConfig.from_dict(saved_settings(hparams))

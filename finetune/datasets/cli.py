@@ -201,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     from finetune.config import ConfigError
     from finetune.datasets.minari_io import DatasetError
     from finetune.pretrained import PretrainedError
+    from finetune.replay import ReplayError
     from finetune.train import FinetuneError
 
     args = parser().parse_args(sys.argv[1:] if argv is None else argv)
@@ -217,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
             inspect(args)
         else:
             list_(args)
-    except (DatasetError, ConfigError, FinetuneError, PretrainedError) as error:
+    except (DatasetError, ConfigError, FinetuneError, PretrainedError, ReplayError) as error:
         print(f"hauwm datasets: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

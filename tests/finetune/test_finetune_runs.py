@@ -75,6 +75,11 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     other = export_frozen(WorldModel(export_sizes), tmp_path / "other-export")
     assert main(run + ["--pretrained", str(other)]) == 2
     assert "another --pretrained export" in capsys.readouterr().err
+    checkpoint = logdir / CHECKPOINT
+    checkpoint.write_bytes(checkpoint.read_bytes()[:3000])  # damaged (the run itself writes it atomically)
+    assert main(run + ["--pretrained", str(export_dir)]) == 2
+    err = capsys.readouterr().err
+    assert f"{checkpoint} cannot be read (it is truncated or not a checkpoint" in err and "Traceback" not in err
 
 
 def test_a_run_directory_in_use_is_refused(export_dir, tmp_path, capsys):

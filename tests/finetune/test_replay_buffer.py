@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from finetune.replay import Replay
+from finetune.replay import Replay, ReplayError
 
 
 def episode(index: int, length: int) -> dict[str, np.ndarray]:
@@ -56,3 +56,18 @@ def test_sampling_without_a_long_enough_episode_says_what_to_change(tmp_path):
     replay.add(episode(1, 5))
     with pytest.raises(ValueError, match="seq_len"):
         replay.sample(4, 10)
+
+
+def test_a_damaged_episode_file_is_named_and_a_deleted_one_overwrites_nothing(tmp_path):
+    replay = Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0))
+    for i in range(3):
+        replay.add(episode(i + 1, 5))
+    first, second, third = sorted(tmp_path.glob("*.npz"))
+    second.write_bytes(second.read_bytes()[:100])  # truncated, as by a full disk or a broken copy
+    with pytest.raises(ReplayError, match=f"{second}: this replay episode cannot be read .* delete it"):
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load()
+    second.unlink()  # what the message offers: the run goes on without that episode
+    resumed = Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0))
+    assert resumed.load() == 2
+    resumed.add(episode(4, 5))
+    assert [path.name for path in sorted(tmp_path.glob("*.npz"))] == [first.name, third.name, "000003-5.npz"]
