@@ -139,7 +139,12 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
         path = Path(path)
         if not path.is_file():
             raise ConfigError(f"config file {path} not found (configs are in configs/finetune/)")
-        values = yaml.safe_load(path.read_text()) or {}
+        try:
+            values = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as err:
+            mark = getattr(err, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+            raise ConfigError(f"config file {path} is not valid YAML: {getattr(err, 'problem', err)}{where}") from None
         if not isinstance(values, dict):
             raise ConfigError(f"config file {path} must hold a mapping of settings, found {type(values).__name__}")
     values.update(overrides or {})
@@ -150,21 +155,24 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
     if values.get("compile") is False:  # YAML reads a bare `off` as false
         values["compile"] = "off"
     types = typing.get_type_hints(FinetuneConfig)
-    whole_numbers = {name: types[name] in (int, int | None) for name in fields}
     for name, value in values.items():
+        if value is None and type(None) in typing.get_args(types[name]):
+            continue  # None: "the export's", "the suite's own" or "not given"
         if types[name] is bool and not isinstance(value, bool):
             raise ConfigError(f"setting {name} must be true or false, got {value!r}")
-        optional = types[name] in (int | None, float | None)  # None means "the export's" or "the suite's own"
-        if types[name] in (int, float) or (optional and value is not None):
+        if types[name] in (str, str | None) and not isinstance(value, str):
+            raise ConfigError(f"setting {name} must be text, got {value!r}")
+        if types[name] in (int, float, int | None, float | None):
             try:
                 if isinstance(value, bool) or not isinstance(value, (int, float, str)):
                     raise ValueError
                 number = float(value)  # YAML reads 1e6 as a string
             except ValueError:
                 raise ConfigError(f"setting {name} must be a number, got {value!r}") from None
-            if whole_numbers[name] and not number.is_integer():
+            whole = types[name] in (int, int | None)
+            if whole and not number.is_integer():
                 raise ConfigError(f"setting {name} must be a whole number, got {value!r}")
-            values[name] = int(number) if whole_numbers[name] else number
+            values[name] = int(number) if whole else number
     return FinetuneConfig(**values)
 
 
@@ -173,4 +181,7 @@ def parse_override(text: str) -> tuple[str, object]:
     key, sep, value = text.partition("=")
     if not sep or not key:
         raise ConfigError(f"--set expects key=value, got {text!r}")
-    return key.strip(), yaml.safe_load(value)
+    try:
+        return key.strip(), yaml.safe_load(value)
+    except yaml.YAMLError:  # not YAML (e.g. "[1"): the text itself, which the setting's own check then judges
+        return key.strip(), value

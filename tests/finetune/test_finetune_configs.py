@@ -95,3 +95,15 @@ def test_numeric_settings_are_range_checked():
             load_config(None, settings)
     cfg = load_config(None, {"time_limit": None, "deter": None, "prefill": 0, "steps": "1e6"})  # None: the suite's/export's
     assert (cfg.time_limit, cfg.deter, cfg.prefill, cfg.steps) == (None, None, 0, 1_000_000)
+
+
+def test_a_config_that_is_not_yaml_or_a_value_of_another_kind_is_refused_by_name(tmp_path):
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("steps: [1, 2\nagent: x\n")
+    with pytest.raises(ConfigError, match=f"config file {broken} is not valid YAML: .* at line 2, column 6"):
+        load_config(broken)
+    with pytest.raises(ConfigError, match="setting steps must be a number, got '\\[1'"):
+        load_config(None, dict([parse_override("steps=[1")]))  # not YAML: the text, judged by the setting
+    with pytest.raises(ConfigError, match="setting task must be text, got 5"):
+        load_config(None, dict([parse_override("task=5")]))
+    assert load_config(None, dict([parse_override("dataset=null")])).dataset is None
