@@ -96,7 +96,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def last_evaluation(logdir: Path) -> str:
     """The last row of a run's eval.csv, e.g. 'last evaluation at env_step 400: return 1.085, return_std 0'."""
-    rows = list(csv.DictReader((logdir / "eval.csv").open(newline=""))) if (logdir / "eval.csv").is_file() else []
+    rows = []
+    if (logdir / "eval.csv").is_file():
+        with (logdir / "eval.csv").open(newline="") as f:
+            rows = list(csv.DictReader(f))
     if not rows:
         return "no evaluation recorded"
     (step_name, step), *values = rows[-1].items()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,8 +28,9 @@ CHOICES: dict[str, tuple[str, ...]] = {
 }
 
 
-# allowed ranges of the numeric settings (a None setting, "the export's" or "the suite's own", is not checked)
-RANGES: tuple[tuple[tuple[str, ...], str, object], ...] = (
+# allowed ranges of the numeric settings: (names, the rule in words, the test); None ("the export's", "the suite's
+# own") is not tested
+RANGES: tuple[tuple[tuple[str, ...], str, Callable[[float], bool]], ...] = (
     (("steps", "action_repeat", "time_limit", "replay_capacity", "batch_size", "seq_len", "train_every",
       "eval_every", "eval_episodes", "log_every", "checkpoint_every", "deter", "stoch", "hidden", "model_heads",
       "units", "encoder_width", "horizon", "num_envs"), "at least 1", lambda v: v >= 1),
