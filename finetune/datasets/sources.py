@@ -110,7 +110,10 @@ def replay_episodes(rundir: str | Path, limit: int | None = None) -> tuple[dict[
     cfg = run_config(rundir)
     paths = episode_files(Path(rundir) / "replay")
     if not paths:
-        raise DatasetError(f"{rundir}/replay holds no episodes yet")
+        why = ("an offline run never acts, so it keeps no replay" if cfg.paradigm == "offline" else
+               "the run has not finished an episode yet")
+        raise DatasetError(f"{rundir}/replay holds no episodes: {why}; to record the run's agent instead, use "
+                           f"--policy agent --checkpoint {rundir}")
     paths = paths[:limit] if limit is not None else paths
     settings = {"task": cfg.task, "action_repeat": cfg.action_repeat, "time_limit": cfg.time_limit,
                 "fast_render": cfg.fast_render, "seed": cfg.seed, "agent": cfg.agent, "run": str(rundir)}

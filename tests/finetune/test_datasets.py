@@ -216,3 +216,10 @@ def test_bad_env_settings_are_refused(capsys):
                              ("image_size=32", "not an env setting"), ("time_limit=600", "exceeds Meta-World's")):
         assert main([*base, "--set", setting]) == 2, setting
         assert message in capsys.readouterr().err, setting
+
+
+def test_a_run_without_replay_episodes_says_how_to_record_its_agent(tmp_path, capsys):
+    (tmp_path / "config.yaml").write_text("task: metaworld_drawer_close\nparadigm: offline\nmodel_heads: 7\n")
+    assert main(["collect", "--from-run", str(tmp_path), "--dataset-id", "test/replay-v0"]) == 2
+    err = capsys.readouterr().err
+    assert "an offline run never acts" in err and f"--policy agent --checkpoint {tmp_path}" in err
