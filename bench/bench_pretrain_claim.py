@@ -52,7 +52,8 @@ def run_claim(out: Path, steps: int, shards: Path | None = None, extra: list[str
                      "--model.lambda_init", lambda_init, "--trainer.enable_progress_bar", "false", *extra])
         assert code == 0, f"training {name} failed"
         seconds[name] = time.perf_counter() - start
-        assert main(["export", str(root / "checkpoints" / "last.ckpt"), "--out", str(out / f"export-{name}")]) == 0
+        assert main(["export", str(root / "checkpoints" / "last.ckpt"), "--out", str(out / f"export-{name}"),
+                     "--overwrite"]) == 0
         exports.append(out / f"export-{name}")
     analysis = out / "analysis"
     args = ["analyze", "--shards", str(shards), "--out", str(analysis), "--batches", "16", "--batch-size", "8"]

@@ -131,13 +131,17 @@ def lightning_cli(args: list[str]):
 
 
 def export_command(argv: list[str]) -> int:
-    from model.export import export_frozen, world_model_from_checkpoint
+    from model.export import CONFIG_FILE, WEIGHTS_FILE, ExportError, export_frozen, world_model_from_checkpoint
 
     parser = argparse.ArgumentParser(prog="hauwm pretrain export", description="Write the frozen export of a checkpoint.")
     parser.add_argument("checkpoint", type=Path, help="a Lightning checkpoint of `hauwm pretrain fit` (e.g. RUN/checkpoints/last.ckpt)")
     parser.add_argument("--out", type=Path, required=True, help="directory for weights.safetensors and config.json")
+    parser.add_argument("--overwrite", action="store_true", help="replace an export already in --out")
     args = parser.parse_args(argv)
     model, provenance = world_model_from_checkpoint(args.checkpoint)
+    if not args.overwrite and any((args.out / name).exists() for name in (WEIGHTS_FILE, CONFIG_FILE)):
+        raise ExportError(f"--out {args.out} already holds an export; fine-tuning runs made on it check its weights "
+                          "and would not resume on others: choose another --out, or pass --overwrite")
     out = export_frozen(model, args.out, provenance)
     print(f"exported {args.checkpoint} (step {provenance['global_step']}, M={model.config.ensemble}) to {out}")
     return 0

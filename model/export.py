@@ -57,7 +57,9 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tensors = {name: t.detach().float().contiguous().cpu() for name, t in model.state_dict().items()}
-    save_file(tensors, str(out / WEIGHTS_FILE), metadata={"schema_version": str(SCHEMA_VERSION), "kind": KIND})
+    # one metadata entry: safetensors writes several in a different order each process, and fine-tuning runs
+    # recognise their export by the file's sha256 (finetune/train.py), so the same model must give the same bytes
+    save_file(tensors, str(out / WEIGHTS_FILE), metadata={"hauwm": f"{KIND}, schema_version {SCHEMA_VERSION}"})
     config = {
         "schema_version": SCHEMA_VERSION,
         "kind": KIND,

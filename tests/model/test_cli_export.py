@@ -175,6 +175,19 @@ def test_a_resume_keeps_this_runs_compile_setting(built_shards, tiny_run, tmp_pa
     assert config["model"]["compile"] == "default" and config["model"]["lr"] == 1e-3
 
 
+def test_an_export_is_not_replaced_without_overwrite(tiny_run, tiny_export, tmp_path, capsys):
+    out = tmp_path / "export"
+    shutil.copytree(tiny_export, out)
+    weights = (out / "weights.safetensors").read_bytes()
+    (out / "weights.safetensors").write_bytes(weights[:-4] + bytes(4))  # another model's, as far as a sha256 goes
+    checkpoint = str(tiny_run / "checkpoints" / "last.ckpt")
+    assert main(["export", checkpoint, "--out", str(out)]) == 2
+    assert "already holds an export" in capsys.readouterr().err
+    assert (out / "weights.safetensors").read_bytes() != weights  # untouched
+    assert main(["export", checkpoint, "--out", str(out), "--overwrite"]) == 0
+    assert (out / "weights.safetensors").read_bytes() == weights  # the same checkpoint gives the same bytes
+
+
 def test_export_of_a_missing_or_damaged_checkpoint_is_refused(tiny_run, tmp_path, capsys):
     assert main(["export", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "out")]) == 2
     assert "none.ckpt not found" in capsys.readouterr().err
