@@ -71,7 +71,12 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"{args.config} is a config for {cfg.paradigm} training (paradigm: {cfg.paradigm}): run "
                               f"`{COMMANDS[cfg.paradigm]} --config {args.config} …`, or give `{COMMANDS[paradigm]}` "
                               f"a config from {CONFIG_DIRS[paradigm]}/")
-        result = _runner(paradigm)(cfg, args.pretrained, progress=not args.no_progress)
+        pretrained = args.pretrained
+        if cfg.agent == "scratch" and pretrained is not None:  # nor does its checkpoint record it, so resume needs none
+            print(f"{parser(subcommand).prog}: note: the scratch agent does not use --pretrained {pretrained}",
+                  file=sys.stderr)
+            pretrained = None
+        result = _runner(paradigm)(cfg, pretrained, progress=not args.no_progress)
     except (ConfigError, PretrainedError, FinetuneError, ReplayError) as error:
         print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2

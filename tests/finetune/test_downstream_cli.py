@@ -67,3 +67,11 @@ def test_an_interrupted_run_says_which_checkpoint_is_kept(monkeypatch, tmp_path,
     (tmp_path / finetune.train.CHECKPOINT).write_bytes(b"")
     assert main(args) == 130
     assert f"its last checkpoint, {tmp_path / 'checkpoint.pt'} (written " in capsys.readouterr().err
+
+
+def test_the_scratch_agent_says_it_does_not_use_the_export(monkeypatch, capsys):
+    given = []
+    monkeypatch.setattr(finetune.train, "train", lambda cfg, pretrained, progress: given.append(pretrained) or {"r": 1.0})
+    assert main(["--config", "configs/finetune/demo.yaml", "--set", "agent=scratch", "--pretrained", "exports/x"]) == 0
+    assert given == [None]  # so its checkpoint records no export, and a resume without --pretrained fits it
+    assert "the scratch agent does not use --pretrained exports/x" in capsys.readouterr().err
