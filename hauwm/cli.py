@@ -34,8 +34,12 @@ def main(argv: list[str] | None = None) -> int:
     if argv[0] not in STAGES:
         print(f"hauwm: unknown stage {argv[0]!r}\n\n{usage()}", file=sys.stderr)
         return 2
-    module = importlib.import_module(STAGES[argv[0]][0])
-    return module.main(argv[1:]) or 0
+    try:
+        module = importlib.import_module(STAGES[argv[0]][0])
+        return module.main(argv[1:]) or 0
+    except KeyboardInterrupt:  # each stage reports an interrupted run itself; this is Ctrl-C while starting up
+        print(f"\nhauwm {argv[0]}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

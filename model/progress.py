@@ -65,5 +65,6 @@ class StepProgressBar(TQDMProgressBar):
         last = Path(checkpoint.last_model_path or checkpoint.best_model_path) if checkpoint else None
         where = (f"resume with --ckpt_path {last} (written {time.strftime('%H:%M:%S', time.localtime(last.stat().st_mtime))})"
                  if last and last.is_file() else "no checkpoint was written yet")
-        self.train_progress_bar.close()
+        if self._train_progress_bar is not None:  # None when stopped before training began (sanity check)
+            self._train_progress_bar.close()
         print(f"hauwm pretrain fit: interrupted at step {trainer.global_step}; {where}", file=sys.stderr)
