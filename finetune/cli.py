@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
                               f"`{COMMANDS[cfg.paradigm]} --config {args.config} …`, or give `{COMMANDS[paradigm]}` "
                               f"a config from {CONFIG_DIRS[paradigm]}/")
         pretrained = args.pretrained
-        if cfg.agent == "scratch" and pretrained is not None:  # nor does its checkpoint record it, so resume needs none
+        if cfg.agent == "scratch" and pretrained is not None:  # the run ignores it (start_run); say so, pass none
             print(f"{parser(subcommand).prog}: note: the scratch agent does not use --pretrained {pretrained}",
                   file=sys.stderr)
             pretrained = None

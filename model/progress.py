@@ -62,9 +62,10 @@ class StepProgressBar(TQDMProgressBar):
         if not (isinstance(exception, KeyboardInterrupt) and trainer.is_global_zero):
             return
         checkpoint = trainer.checkpoint_callback
-        last = Path(checkpoint.last_model_path or checkpoint.best_model_path) if checkpoint else None
-        where = (f"resume with --ckpt_path {last} (written {time.strftime('%H:%M:%S', time.localtime(last.stat().st_mtime))})"
-                 if last and last.is_file() else "no checkpoint was written yet")
+        last = Path(checkpoint.last_model_path or checkpoint.best_model_path) if checkpoint else Path()
+        where = "no checkpoint was written yet"  # Path() is ".", never a file
+        if last.is_file():
+            where = f"resume with --ckpt_path {last} (written {time.strftime('%H:%M:%S', time.localtime(last.stat().st_mtime))})"
         if self._train_progress_bar is not None:  # None when stopped before training began (sanity check)
             self._train_progress_bar.close()
         print(f"hauwm pretrain fit: interrupted at step {trainer.global_step}; {where}", file=sys.stderr)

@@ -73,5 +73,5 @@ def test_the_scratch_agent_says_it_does_not_use_the_export(monkeypatch, capsys):
     given = []
     monkeypatch.setattr(finetune.train, "train", lambda cfg, pretrained, progress: given.append(pretrained) or {"r": 1.0})
     assert main(["--config", "configs/finetune/demo.yaml", "--set", "agent=scratch", "--pretrained", "exports/x"]) == 0
-    assert given == [None]  # so its checkpoint records no export, and a resume without --pretrained fits it
+    assert given == [None]  # the run is handed no export it would ignore
     assert "the scratch agent does not use --pretrained exports/x" in capsys.readouterr().err
