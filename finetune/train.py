@@ -407,8 +407,8 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
             bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
             counters["next_eval"] = next_multiple(counters["env_step"], cfg.eval_every)
         if counters["env_step"] >= counters["next_checkpoint"] or counters["env_step"] >= cfg.steps:
-            save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
             counters["next_checkpoint"] = next_multiple(counters["env_step"], cfg.checkpoint_every)
+            save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
     bar.close()
     logger.close()
     return last_eval

@@ -44,6 +44,7 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert [int(r["env_step"]) for r in rows(logdir / "eval.csv")] == [100, 200]
     first = torch.load(logdir / CHECKPOINT, weights_only=True)
     assert first["counters"]["env_step"] == 200 and first["counters"]["updates"] == 12
+    assert first["counters"]["next_checkpoint"] == 300  # the next one due: a resume does not write 200's again
 
     # resume: a fresh agent loads exactly the saved weights; the run continues from 200, not from 0
     cfg = load_config("configs/finetune/demo.yaml", dict(hidden=24, units=32, logdir=str(logdir)))
