@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import logging
 import sys
 import warnings
 from pathlib import Path
@@ -50,6 +51,11 @@ def refuse_flat_sizes(args: list[str]) -> None:
         if flat:
             raise ConfigError(f"{path}: model.{flat[0]} (like every size) now belongs under model.world_model, "
                               f"e.g. `model: {{world_model: {{{flat[0]}: {model[flat[0]]}}}}}` (model/config.py)")
+
+
+def not_an_advert(record: logging.LogRecord) -> bool:
+    """A logging filter: Lightning 2.6 advertises its cloud logger at every Trainer start; a run's output is for the run."""
+    return "litlogger" not in str(record.msg)
 
 
 def lightning_cli(args: list[str]):
@@ -121,6 +127,7 @@ def lightning_cli(args: list[str]):
     warnings.filterwarnings("ignore", message="The number of training batches .* is smaller than the logging interval")
     # Lightning 2.6's own pytree helper uses a torch API that torch 2.14 deprecates (not this project's code)
     warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated")
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(not_an_advert)  # once, however often called
     return PretrainCLI(
         PretrainModule,
         ShardDataModule,

@@ -4,6 +4,7 @@ reproduces the trained module without unpickling, bad settings fail with clear m
 from __future__ import annotations
 
 import json
+import logging
 import pickle
 import shutil
 
@@ -252,3 +253,16 @@ def test_analyze_refuses_settings_that_leave_nothing_to_measure(built_shards, ti
     args = ["analyze", "--model", str(tiny_export), "--shards", str(built_shards), "--out", str(tmp_path / "a"), *flags]
     assert main(args) == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "a").exists()
+
+
+def test_a_fit_prints_lightnings_messages_but_not_its_cloud_logger_advert(built_shards, tmp_path):
+    messages: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: messages.append(record.getMessage())
+    logging.getLogger("lightning.pytorch").addHandler(handler)
+    try:
+        assert fit(built_shards, tmp_path / "run", "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0") == 0
+    finally:
+        logging.getLogger("lightning.pytorch").removeHandler(handler)
+    assert any("GPU available" in message for message in messages)  # Lightning's own start-up lines still print
+    assert not any("litlogger" in message for message in messages)
