@@ -242,6 +242,10 @@ def validate(config: BuildConfig) -> None:
         raise BuildError(f"--max-clips must be at least 1, got {config.max_clips}")
     if not 1 <= config.quality <= 100:
         raise BuildError(f"--quality must lie in 1..100, got {config.quality}")
+    if not 0 <= config.max_error_rate <= 1:
+        raise BuildError(f"--max-error-rate is a fraction of the clips and must lie in 0..1, got {config.max_error_rate}")
+    if not config.timeout > 0:
+        raise BuildError(f"--timeout (seconds one clip may take to decode) must be positive, got {config.timeout}")
 
 
 def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:

@@ -1,6 +1,7 @@
 """`hauwm shards build`: broken entries, faithful frames, reproducibility, resume after SIGKILL, refusals."""
 
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -201,6 +202,11 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
     config.videos = sample_ssv2 / "annotations"  # a directory, but not of the clips' videos
     with pytest.raises(BuildError, match=r"--videos .*annotations holds none of this part's \d+ clips"):
         build(config, log=quiet)
+    config.videos = sample_ssv2 / "videos"
+    for setting, value, message in (("max_error_rate", 1.5, "--max-error-rate .* 0..1, got 1.5"),
+                                    ("timeout", 0.0, "--timeout .* must be positive, got 0.0")):
+        with pytest.raises(BuildError, match=message):
+            build(dataclasses.replace(config, **{setting: value}), log=quiet)
     assert not config.out.exists()  # refused before anything was written
 
 
