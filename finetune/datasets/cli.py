@@ -15,6 +15,7 @@ Datasets live under $MINARI_DATASETS_PATH (Minari's own variable; default ~/.min
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from collections.abc import Iterable, Iterator
@@ -105,6 +106,13 @@ def collect(args: argparse.Namespace) -> None:
 
     if args.episodes is not None and args.episodes < 1:
         raise DatasetError(f"--episodes must be >= 1, got {args.episodes}")
+    if not 0 <= args.seed < 2**32:
+        raise DatasetError(f"--seed must be a whole number in 0..2^32-1, got {args.seed}")
+    if not (math.isfinite(args.action_noise) and args.action_noise >= 0):
+        raise DatasetError(f"--action-noise is a standard deviation, a number >= 0; got {args.action_noise}")
+    if args.action_noise and args.policy != "expert":
+        raise DatasetError(f"--action-noise is added to the scripted expert's actions (--policy expert), not to "
+                           f"{'the replay of --from-run' if args.from_run else f'--policy {args.policy}'}; drop it")
     overrides = env_settings(args.set)
     if args.from_run:
         if args.policy or overrides:

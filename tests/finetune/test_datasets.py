@@ -218,6 +218,16 @@ def test_bad_env_settings_are_refused(capsys):
         assert message in capsys.readouterr().err, setting
 
 
+def test_bad_collect_flags_are_refused_before_an_env_is_made(capsys):
+    base = ["collect", "--task", TASK, "--episodes", "1", "--dataset-id", "test/x-v0"]
+    for flags, message in ((["--policy", "expert", "--action-noise", "nan"], "--action-noise is a standard deviation"),
+                           (["--policy", "expert", "--action-noise", "-0.5"], "a number >= 0; got -0.5"),
+                           (["--policy", "random", "--action-noise", "0.5"], "not to --policy random; drop it"),
+                           (["--policy", "random", "--seed", "-5"], "--seed must be a whole number in 0..2^32-1")):
+        assert main([*base, *flags]) == 2, flags
+        assert message in capsys.readouterr().err, flags
+
+
 def test_a_run_without_replay_episodes_says_how_to_record_its_agent(tmp_path, capsys):
     (tmp_path / "config.yaml").write_text("task: metaworld_drawer_close\nparadigm: offline\nmodel_heads: 7\n")
     assert main(["collect", "--from-run", str(tmp_path), "--dataset-id", "test/replay-v0"]) == 2
