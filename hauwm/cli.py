@@ -9,6 +9,8 @@
 from __future__ import annotations
 
 import importlib
+import os
+import signal
 import sys
 
 STAGES = {
@@ -36,10 +38,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         module = importlib.import_module(STAGES[argv[0]][0])
-        return module.main(argv[1:]) or 0
+        try:
+            return module.main(argv[1:]) or 0
+        finally:
+            sys.stdout.flush()  # a reader that went away (`hauwm datasets inspect ID | head`) shows here, not at exit
     except KeyboardInterrupt:  # each stage reports an interrupted run itself; this is Ctrl-C while starting up
         print(f"\nhauwm {argv[0]}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # as a command killed by SIGPIPE ends, without a traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush goes nowhere
+        return 128 + signal.SIGPIPE
 
 
 if __name__ == "__main__":

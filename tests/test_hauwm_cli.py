@@ -1,8 +1,11 @@
-"""The `hauwm` command: dispatch to a stage, an unknown stage, Ctrl-C while a stage starts up."""
+"""The `hauwm` command: dispatch to a stage, an unknown stage, Ctrl-C while a stage starts up, a closed stdout."""
 
 from __future__ import annotations
 
 import importlib
+import os
+import subprocess
+import sys
 
 from hauwm.cli import main
 
@@ -20,3 +23,15 @@ def test_ctrl_c_while_a_stage_starts_is_one_line(monkeypatch, capsys):
     monkeypatch.setattr(importlib, "import_module", interrupted)
     assert main(["pretrain", "fit"]) == 130
     assert capsys.readouterr().err.strip() == "hauwm pretrain: interrupted"
+
+
+def test_output_piped_into_a_reader_that_has_gone_ends_quietly(tmp_path):
+    """`hauwm … | head`: once head has exited, the next write finds the pipe closed; like any Unix tool the
+    command ends (rc 141, as if killed by SIGPIPE) without a traceback."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader is gone before the command writes anything
+    result = subprocess.run([sys.executable, "-c", "import sys; from hauwm.cli import main; sys.exit(main())",
+                             "datasets", "list"], stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=120,
+                            env={**os.environ, "MINARI_DATASETS_PATH": str(tmp_path)})  # prints one line: none there
+    os.close(write_end)
+    assert result.returncode == 141 and result.stderr == ""
