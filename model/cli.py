@@ -133,7 +133,8 @@ def lightning_cli(args: list[str]):
         ShardDataModule,
         args=args,
         save_config_kwargs={"overwrite": True},
-        parser_kwargs={"description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video shards."},
+        parser_kwargs={"prog": "hauwm pretrain",
+                       "description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video shards."},
     )
 
 

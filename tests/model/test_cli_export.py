@@ -159,6 +159,12 @@ def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, 
     assert not (tmp_path / "checkpoints").exists()
 
 
+def test_an_unknown_flag_names_the_help_command_that_exists(capsys):
+    assert main(["fit", "--model.nonsense", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "run: hauwm pretrain fit --help" in err and "usage: hauwm pretrain [options] fit" in err
+
+
 def test_a_checkpoint_of_another_model_size_is_refused(built_shards, tiny_run, tmp_path, capsys):
     code = fit(built_shards, tmp_path, "--model.world_model.deter", "48", "--ckpt_path", str(tiny_run / "checkpoints" / "last.ckpt"))
     assert code == 2
