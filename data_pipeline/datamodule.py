@@ -41,9 +41,13 @@ class ShardDataModule(lightning.LightningDataModule):
         `worker_priority`: `normal`, or `idle` for workers that use only the cores the training step leaves
         free (Linux; for CPU-only runs on few cores, see `loader.check_worker_priority`)."""
         check_worker_priority(worker_priority)
-        for name, value, least in (("num_workers", num_workers, 0), ("val_batches", val_batches, 1)):
+        for name, value, least in (("num_workers", num_workers, 0), ("val_batches", val_batches, 1),
+                                   ("batch_size", batch_size, 1)):
             if value < least:
                 raise LoaderError(f"--data.{name} must be at least {least}, got {value}")
+        if seq_len < 2:
+            raise LoaderError(f"--data.seq_len must be at least 2 (a sequence must hold a gap k for the model to learn "
+                              f"from), got {seq_len}")
         if not timeout > 0:
             raise LoaderError(f"--data.timeout (seconds a worker may take for a batch) must be positive, got {timeout}")
         super().__init__()

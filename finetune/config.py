@@ -31,7 +31,8 @@ CHOICES: dict[str, tuple[str, ...]] = {
 # allowed ranges of the numeric settings: (names, the rule in words, the test); None ("the export's", "the suite's
 # own") is not tested
 RANGES: tuple[tuple[tuple[str, ...], str, Callable[[float], bool]], ...] = (
-    (("steps", "action_repeat", "time_limit", "replay_capacity", "batch_size", "seq_len", "train_every",
+    (("seq_len",), "at least 2 (a window must hold a transition for the world model to learn)", lambda v: v >= 2),
+    (("steps", "action_repeat", "time_limit", "replay_capacity", "batch_size", "train_every",
       "eval_every", "eval_episodes", "log_every", "checkpoint_every", "deter", "stoch", "hidden", "model_heads",
       "units", "encoder_width", "horizon", "num_envs"), "at least 1", lambda v: v >= 1),
     (("seed", "threads", "prefill", "noise_std", "kl_scale", "free_nats", "entropy_scale", "penalty_scale",

@@ -85,6 +85,7 @@ def test_numeric_settings_are_range_checked():
     """A negative budget or a fractional batch is refused by name, not run (nor rounded) silently."""
     for settings, message in [({"steps": -5}, "steps must be at least 1, got -5"),
                               ({"batch_size": 1.5}, "batch_size must be a whole number, got 1.5"),
+                              ({"seq_len": 1}, "seq_len must be at least 2"),
                               ({"deter": 2.5}, "deter must be a whole number"),
                               ({"steps": None}, "steps must be a number, got None"),
                               ({"steps": True}, "steps must be a number, got True"),
