@@ -42,7 +42,8 @@ class ShardDataModule(lightning.LightningDataModule):
         free (Linux; for CPU-only runs on few cores, see `loader.check_worker_priority`)."""
         check_worker_priority(worker_priority)
         for name, value, least in (("num_workers", num_workers, 0), ("val_batches", val_batches, 1),
-                                   ("batch_size", batch_size, 1)):
+                                   ("batch_size", batch_size, 1), ("shuffle_buffer", shuffle_buffer, 0),
+                                   ("seed", seed, 0)):
             if value < least:
                 raise LoaderError(f"--data.{name} must be at least {least}, got {value}")
         if seq_len < 2:

@@ -178,6 +178,10 @@ class SequenceDataset(IterableDataset):
         eligible = shards.eligible(seq_len)
         usable = [(url, n) for url, n in zip(shards.urls, eligible) if n > 0]
         streams = world_size * self.workers
+        if not usable:
+            longest = max((frames for counts in shards.frame_counts for frames in counts), default=0)
+            raise LoaderError(f"split {shards.split!r} has no clip of at least seq_len={seq_len} frames (the longest "
+                              f"has {longest}): lower seq_len")
         if len(usable) < streams:
             raise LoaderError(
                 f"split {shards.split!r} has {len(usable)} shards with clips of at least seq_len={seq_len} frames, "

@@ -162,6 +162,10 @@ def test_worker_priority_sets_the_workers_scheduling_class(built_shards, priorit
     (dict(num_workers=-1), "--data.num_workers must be at least 0, got -1"),
     (dict(val_batches=0), "--data.val_batches must be at least 1, got 0"),
     (dict(timeout=0), "--data.timeout .* must be positive, got 0"),
+    (dict(seq_len=1), "--data.seq_len must be at least 2"),
+    (dict(batch_size=0), "--data.batch_size must be at least 1, got 0"),
+    (dict(shuffle_buffer=-4), "--data.shuffle_buffer must be at least 0, got -4"),
+    (dict(seed=-1), "--data.seed must be at least 0, got -1"),
 ])
 def test_bad_loader_settings_are_refused_with_the_flag(built_shards, settings, message):
     with pytest.raises(LoaderError, match=message):
@@ -195,6 +199,8 @@ def test_too_few_shards_or_clips_give_clear_errors(built_shards, monkeypatch):
     with pytest.raises(LoaderError, match="lower batch_size"):
         SequenceDataset(shards, batch_size=64, seq_len=8)
     assert sum(shards.eligible(61)) == 0  # clips have at most 60 frames: too short for L = 61, skipped
+    with pytest.raises(LoaderError, match="no clip of at least seq_len=61 frames .the longest has 60.: lower seq_len"):
+        SequenceDataset(shards, batch_size=2, seq_len=61)
 
 
 def test_datamodule_validates_its_inputs(built_shards, tmp_path):
