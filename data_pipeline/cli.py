@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from .decode import RESIZE_MODES
@@ -11,15 +12,17 @@ from .shard_format import ENCODINGS
 from .ssv2 import SPLITS, AnnotationError
 
 
-def at_least_one(text: str) -> int:
-    """argparse type of the counts below: a whole number >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}")
-    return value
+def at_least(least: int) -> Callable[[str], int]:
+    """An argparse type for the counts and seeds below: a whole number >= `least`."""
+    def whole_number(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = least - 1
+        if value < least:
+            raise argparse.ArgumentTypeError(f"must be a whole number >= {least}, got {text!r}")
+        return value
+    return whole_number
 
 
 def _build(args: argparse.Namespace) -> int:
@@ -112,20 +115,20 @@ def parser() -> argparse.ArgumentParser:
     flag("dir", type=Path, help="shard directory (with manifest.json)")
     flag("--out", metavar="PNG", type=Path, required=True, help="image file to write")
     flag("--split", default=None, help="split to show (default: the first in the manifest)")
-    flag("--clips", metavar="N", type=at_least_one, default=8, help="rows (default 8)")
-    flag("--length", metavar="L", type=at_least_one, default=8, help="frames per row (default 8)")
-    flag("--k-max", metavar="K", type=at_least_one, default=5, help="largest gap K_max (default 5)")
-    flag("--seed", metavar="N", type=int, default=0, help="seed of the gap draws (default 0)")
+    flag("--clips", metavar="N", type=at_least(1), default=8, help="rows (default 8)")
+    flag("--length", metavar="L", type=at_least(1), default=8, help="frames per row (default 8)")
+    flag("--k-max", metavar="K", type=at_least(1), default=5, help="largest gap K_max (default 5)")
+    flag("--seed", metavar="N", type=at_least(0), default=0, help="seed of the gap draws (default 0)")
     preview.set_defaults(run=_preview)
 
     sample = commands.add_parser("sample-data", help="write the built-in stochastic-scene dataset in SSv2's format")
     flag = sample.add_argument
     flag("--out", metavar="DIR", type=Path, required=True, help="output directory (annotations/, videos/)")
-    flag("--clips", metavar="N", type=at_least_one, default=96, help="good clips over all splits (default 96)")
+    flag("--clips", metavar="N", type=at_least(1), default=96, help="good clips over all splits (default 96)")
     flag("--with-broken", action="store_true",
          help="add corrupt, truncated, empty, missing, too-short and non-video entries")
-    flag("--seed", metavar="N", type=int, default=0, help="seed of the scenes (default 0)")
-    flag("--workers", metavar="N", type=at_least_one, default=2, help="processes rendering and encoding clips (default 2)")
+    flag("--seed", metavar="N", type=at_least(0), default=0, help="seed of the scenes (default 0)")
+    flag("--workers", metavar="N", type=at_least(1), default=2, help="processes rendering and encoding clips (default 2)")
     sample.set_defaults(run=_sample_data)
     return root
 

@@ -174,8 +174,9 @@ def analyze_command(argv: list[str]) -> int:
     parser.add_argument("--heads", type=int, default=4, help="ensemble heads shown side by side in the rollout figure")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    for flag, value, least in (("--batches", args.batches, 1), ("--heads", args.heads, 1),
-                               ("--seq-len", args.seq_len, 2)):  # a rollout needs a frame to see and one to imagine
+    for flag, value, least in (("--batches", args.batches, 1), ("--heads", args.heads, 1), ("--batch-size", args.batch_size, 1),
+                               ("--seq-len", args.seq_len, 2),  # a rollout needs a frame to see and one to imagine
+                               ("--k-max", 1 if args.k_max is None else args.k_max, 1), ("--seed", args.seed, 0)):
         if value < least:
             parser.error(f"{flag} must be at least {least}, got {value}")
     written = analyze(args.model, args.shards, args.out, split=args.split, batches=args.batches,

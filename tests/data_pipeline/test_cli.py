@@ -60,9 +60,13 @@ def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
     assert json.loads((tmp_path / "broken.json").read_text()) == {}
 
 
-@pytest.mark.parametrize("argv", [["preview", "DIR", "--out", "p.png", "--clips", "0"],
-                                  ["sample-data", "--out", "OUT", "--clips", "-3"]])
-def test_counts_below_one_are_refused_by_flag(argv, capsys):
+@pytest.mark.parametrize(("argv", "message"), [
+    (["preview", "DIR", "--out", "p.png", "--clips", "0"], "argument --clips: must be a whole number >= 1, got '0'"),
+    (["sample-data", "--out", "OUT", "--clips", "-3"], "argument --clips: must be a whole number >= 1"),
+    (["preview", "DIR", "--out", "p.png", "--seed", "-1"], "argument --seed: must be a whole number >= 0, got '-1'"),
+    (["sample-data", "--out", "OUT", "--seed", "x"], "argument --seed: must be a whole number >= 0, got 'x'"),
+])
+def test_counts_and_seeds_out_of_range_are_refused_by_flag(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(argv)
-    assert exit_.value.code == 2 and "must be a whole number >= 1" in capsys.readouterr().err
+    assert exit_.value.code == 2 and message in capsys.readouterr().err

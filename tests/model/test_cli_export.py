@@ -254,7 +254,9 @@ def test_16_mixed_asked_on_a_cpu_trains_in_bf16_mixed_with_float32_distributions
 
 
 @pytest.mark.parametrize(("flags", "message"), [(["--seq-len", "1"], "--seq-len must be at least 2, got 1"),
-                                                (["--batches", "0"], "--batches must be at least 1, got 0")])
+                                                (["--batches", "0"], "--batches must be at least 1, got 0"),
+                                                (["--k-max", "0"], "--k-max must be at least 1, got 0"),
+                                                (["--seed", "-1"], "--seed must be at least 0, got -1")])
 def test_analyze_refuses_settings_that_leave_nothing_to_measure(built_shards, tiny_export, tmp_path, capsys, flags,
                                                                   message):
     args = ["analyze", "--model", str(tiny_export), "--shards", str(built_shards), "--out", str(tmp_path / "a"), *flags]
