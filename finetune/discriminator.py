@@ -1,8 +1,9 @@
 """The discriminator of imitation (paper eq. 5, appendix F.1; VMAIL's latent-space adversarial imitation).
 
 D_ψ(z, a) = σ(ℓ_ψ([z; a])) is the probability that a latent pair (feature z_t = [ŝ_t; s̃_t], action a_t)
-comes from the expert: expert pairs are the posterior features of demonstration windows with the actions
-the expert took there, policy pairs the actor's own (z_t, a_t) in imagination. ℓ_ψ is an MLP with 2
+comes from the expert: expert pairs are the latents of demonstration windows with the actions the expert
+took there (imagined along those actions by default, or the posterior ones: `expert_latents`, see
+finetune/imitation.py), policy pairs the actor's own (z_t, a_t) in imagination. ℓ_ψ is an MLP with 2
 hidden layers of `units` ELU units, as the actor (finetune.behavior.mlp). Its loss is eq. 5's minimax term
 with an input-space gradient penalty (Gulrajani et al. 2017, as DAC uses for adversarial imitation):
 
