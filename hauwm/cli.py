@@ -4,10 +4,14 @@
     hauwm pretrain ...   model.cli           (LightningCLI fit, export, analyze)
     hauwm finetune ...   finetune.cli        (online RL, `offline` RL and `imitate`, from the frozen export)
     hauwm datasets ...   finetune.datasets.cli (Minari datasets for offline RL: collect, merge, inspect, list)
+
+A stage's own errors are its to report; what reaches this dispatcher is reported here in one line: Ctrl-C while
+a stage starts up, a reader of stdout that has gone (`| head`), and a path that cannot be made, read or written.
 """
 
 from __future__ import annotations
 
+import errno
 import importlib
 import os
 import signal
@@ -26,6 +30,16 @@ def usage() -> str:
     lines += [f"  {name:<9} {help_}" for name, (_, help_) in STAGES.items()]
     lines += ["", "Run `hauwm STAGE --help` for the stage's own flags."]
     return "\n".join(lines)
+
+
+def path_problem(err: OSError) -> str:
+    """What went wrong with err.filename, and what to do, in one clause."""
+    path = err.filename
+    if err.errno in (errno.EEXIST, errno.ENOTDIR):  # mkdir of an output directory where a file is
+        return f"{path} is a file, or lies under one, where a directory is needed: pass another path"
+    if err.errno == errno.ENOSPC:
+        return f"no space left on the device while writing {path}: free some space first"
+    return f"{path}: {err.strerror}: check the path and its permissions"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,6 +62,11 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # as a command killed by SIGPIPE ends, without a traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush goes nowhere
         return 128 + signal.SIGPIPE
+    except OSError as err:  # a path a stage could not make, read or write: one line naming it, not a traceback
+        if err.filename is None:  # not about a path (a socket, a library's own failure): keep the traceback
+            raise
+        print(f"hauwm {argv[0]}: error: {path_problem(err)}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -1,11 +1,16 @@
-"""The `hauwm` command: dispatch to a stage, an unknown stage, Ctrl-C while a stage starts up, a closed stdout."""
+"""The `hauwm` command: dispatch to a stage, an unknown stage, Ctrl-C while a stage starts up, a closed stdout, a path
+that cannot be written."""
 
 from __future__ import annotations
 
+import errno
 import importlib
 import os
 import subprocess
 import sys
+import types
+
+import pytest
 
 from hauwm.cli import main
 
@@ -35,3 +40,25 @@ def test_output_piped_into_a_reader_that_has_gone_ends_quietly(tmp_path):
                             env={**os.environ, "MINARI_DATASETS_PATH": str(tmp_path)})  # prints one line: none there
     os.close(write_end)
     assert result.returncode == 141 and result.stderr == ""
+
+
+def test_an_output_path_where_a_file_is_is_named_in_one_line(tmp_path, capsys):
+    (tmp_path / "taken").write_text("")
+    assert main(["shards", "sample-data", "--out", str(tmp_path / "taken" / "ssv2"), "--clips", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("hauwm shards: error: ") and f"{tmp_path / 'taken'}" in err and "is a file" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_full_disk_is_named_and_other_os_errors_keep_their_traceback(monkeypatch, capsys):
+    def stage(error):
+        def main(argv):
+            raise error
+        return types.SimpleNamespace(main=main)
+
+    monkeypatch.setattr(importlib, "import_module", lambda name: stage(OSError(errno.ENOSPC, "No space left", "/d/x.tar")))
+    assert main(["shards", "build"]) == 2
+    assert "no space left on the device while writing /d/x.tar" in capsys.readouterr().err
+    monkeypatch.setattr(importlib, "import_module", lambda name: stage(ConnectionResetError("peer")))
+    with pytest.raises(ConnectionResetError):  # not about a path: a bug or a network failure, shown in full
+        main(["shards", "build"])
