@@ -48,7 +48,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.machine import describe_machine  # noqa: E402
-from data_pipeline.loader import MANIFEST_FILE, WORKER_PRIORITIES, SequenceDataset, shard_set  # noqa: E402
+from data_pipeline.loader import WORKER_PRIORITIES, SequenceDataset, shard_set  # noqa: E402
+from data_pipeline.shard_format import MANIFEST_FILE  # noqa: E402
 from model.cli import lightning_cli  # noqa: E402
 from model.config import WorldModelConfig  # noqa: E402
 from model.module import PretrainModule, compiled, step_unless  # noqa: E402

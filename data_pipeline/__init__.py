@@ -7,7 +7,7 @@ The names below import lazily, so the shard-building CLI does not load torch and
 
 from importlib import import_module
 
-_EXPORTS = {"SetEpoch": "datamodule", "ShardDataModule": "datamodule", "LoaderError": "loader",
+_EXPORTS = {"SetEpoch": "datamodule", "ShardDataModule": "datamodule", "LoaderError": "loader", "ShardDirError": "shard_format",
             "SequenceDataset": "loader", "collate": "loader", "make_dataloader": "loader", "shard_set": "loader",
             "sample_indices": "sampling"}
 __all__ = list(_EXPORTS)

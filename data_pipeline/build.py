@@ -22,12 +22,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .shard_format import ENCODINGS, FORMAT_VERSION, add_clip, open_writer
+from .shard_format import ENCODINGS, FORMAT_VERSION, MANIFEST_FILE, add_clip, open_writer
 from .ssv2 import ClipRecord, annotation_path, load_labels, load_split
 from .workers import ClipResult, DecodePool, DecodeSettings
 
 SETTINGS_FILE = "build.json"
-MANIFEST_FILE = "manifest.json"
 ERRORS_FILE = "errors.jsonl"
 
 
@@ -113,7 +112,11 @@ def check_settings(out: Path, settings: dict, part: int) -> None:
     """Record the settings in a fresh directory; refuse a resume whose settings differ."""
     path = out / SETTINGS_FILE
     if path.is_file():
-        previous = json.loads(path.read_text())
+        try:
+            previous = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise BuildError(f"{path} is damaged ({err}), so the settings of the shards in {out} are unknown; build into "
+                             "a new --out directory") from None
         if previous != settings:
             details = "; ".join(f"{key}: was {was}, now {now}" for key, was, now in _differences(previous, settings))
             raise BuildError(f"{out} holds shards built with other settings ({details}). Re-run with the "

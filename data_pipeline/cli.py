@@ -46,7 +46,8 @@ def _build(args: argparse.Namespace) -> int:
 
 
 def _inspect(args: argparse.Namespace) -> int:
-    from .inspect_shards import ShardDirError, inspect_shards
+    from .inspect_shards import inspect_shards
+    from .shard_format import ShardDirError
 
     try:
         return inspect_shards(args.dir, verify=args.verify)
@@ -56,7 +57,7 @@ def _inspect(args: argparse.Namespace) -> int:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    from .inspect_shards import ShardDirError
+    from .shard_format import ShardDirError
     from .preview import write_preview
 
     try:

@@ -17,7 +17,8 @@ import warnings
 
 import lightning
 
-from .loader import LoaderError, SequenceDataset, check_worker_priority, make_dataloader, read_manifest, shard_set
+from .loader import LoaderError, SequenceDataset, check_worker_priority, make_dataloader, shard_set
+from .shard_format import read_manifest
 
 
 class SetEpoch(lightning.Callback):

@@ -16,21 +16,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .shard_format import decode_frames
+from .shard_format import REBUILD_MANIFEST, decode_frames, read_manifest
 
-MANIFEST_FILE, ERRORS_FILE = "manifest.json", "errors.jsonl"
-
-
-class ShardDirError(Exception):
-    """Not a finished shard directory; the message says how to make one."""
-
-
-def load_manifest(directory: Path) -> dict:
-    path = Path(directory) / MANIFEST_FILE
-    if not path.is_file():
-        raise ShardDirError(f"{path} not found; build shards with `hauwm shards build --annotations DIR --videos DIR "
-                            f"--out {directory}` (a build in parts writes the manifest when all parts are done)")
-    return json.loads(path.read_text())
+ERRORS_FILE = "errors.jsonl"
 
 
 def check_shard(path: Path, expected: dict) -> list[str]:
@@ -66,11 +54,25 @@ def check_shard(path: Path, expected: dict) -> list[str]:
     return problems
 
 
+def read_errors(path: Path) -> tuple[list[dict], int]:
+    """The clip failures recorded in errors.jsonl (none if it is missing), and how many of its lines are not one."""
+    records, damaged = [], 0
+    for line in path.read_text(errors="replace").splitlines() if path.is_file() else []:
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            record = None
+        if isinstance(record, dict) and {"split", "reason"} <= record.keys():
+            records.append(record)
+        else:
+            damaged += 1
+    return records, damaged
+
+
 def inspect_shards(directory: Path, verify: bool = False, log=print) -> int:
     directory = Path(directory)
-    manifest = load_manifest(directory)
-    errors_path = directory / ERRORS_FILE
-    errors = [json.loads(line) for line in errors_path.read_text().splitlines()] if errors_path.is_file() else []
+    manifest = read_manifest(directory)
+    errors, damaged = read_errors(directory / ERRORS_FILE)
     settings = manifest["settings"]
     log(f"{directory}: format {manifest['format_version']}, {settings['size']}×{settings['size']} "
         f"{settings['resize']}, encoding {settings['encoding']}" +
@@ -82,14 +84,17 @@ def inspect_shards(directory: Path, verify: bool = False, log=print) -> int:
     by_reason = Counter((error["split"], error["reason"]) for error in errors)
     for (split, reason), count in sorted(by_reason.items()):
         log(f"  {split} errors: {reason}: {count}")
+    if damaged:
+        log(f"  {ERRORS_FILE}: {damaged} lines are not clip failures (the file is damaged); {REBUILD_MANIFEST}")
     if not verify:
         return 0
     shards = [(split, shard) for split, counts in manifest["splits"].items() for shard in counts["shards"]]
     problems = []
     for split, shard in tqdm(shards, desc="verify", unit="shard", disable=None):
         problems += check_shard(directory / shard["name"], shard)
-    if len(errors) != manifest["errors"]["total"]:
-        problems.append(f"{ERRORS_FILE}: {len(errors)} lines, manifest says {manifest['errors']['total']}")
+    if len(errors) != manifest["errors"]["total"] or damaged:
+        problems.append(f"{ERRORS_FILE}: {len(errors)} clip failures and {damaged} damaged lines, manifest says "
+                        f"{manifest['errors']['total']} failures")
     for problem in problems:
         log(f"  FAILED {problem}")
     log(f"verify: {len(shards)} shards, " + (f"{len(problems)} problems" if problems else "all match the manifest"))

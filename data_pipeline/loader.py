@@ -53,11 +53,8 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from webdataset.utils import pytorch_worker_info
 
 from .sampling import gaps_of, sample_indices
-from .shard_format import decode_frames, read_samples
+from .shard_format import MANIFEST_FILE, decode_frames, read_manifest, read_samples
 
-MANIFEST_FILE = "manifest.json"
-BUILD_HINT = ("build it with `hauwm shards build --annotations DIR --videos DIR --out {dir}` "
-              "(or `hauwm shards sample-data` first for the built-in data)")
 VERIFY_HINT = "check the shards with `hauwm shards inspect DIR --verify` and rebuild the broken one"
 RESUME_HINT = "the checkpoints written so far are intact: resume with `--ckpt_path RUN/checkpoints/last.ckpt`"
 # how torch's DataLoader iterator reports a worker that died or a batch that did not come in time
@@ -86,17 +83,6 @@ class ShardSet:
     def eligible(self, seq_len: int) -> list[int]:
         """Per shard, the number of clips with at least `seq_len` frames (the others are skipped)."""
         return [sum(n for frames, n in counts.items() if frames >= seq_len) for counts in self.frame_counts]
-
-
-def read_manifest(directory: str | Path) -> dict:
-    directory = Path(directory)
-    path = directory / MANIFEST_FILE
-    if not directory.is_dir():
-        raise LoaderError(f"shard directory {directory} does not exist; {BUILD_HINT.format(dir=directory)}")
-    if not path.is_file():
-        raise LoaderError(f"{path} not found: {directory} is not a finished shard directory; "
-                          f"{BUILD_HINT.format(dir=directory)} (a build in parts writes it when all parts are done)")
-    return json.loads(path.read_text())
 
 
 def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -> ShardSet:

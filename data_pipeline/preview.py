@@ -11,9 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .inspect_shards import ShardDirError, load_manifest
 from .sampling import gaps_of, sample_indices
-from .shard_format import decode_frames
+from .shard_format import MANIFEST_FILE, ShardDirError, decode_frames, read_manifest
 
 SCALE, LABEL_HEIGHT, CAPTION_HEIGHT = 2, 14, 16
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # what cv2.imwrite writes here
@@ -39,10 +38,10 @@ def write_preview(directory: Path, out: Path, split: str | None = None, clips: i
     directory, out = Path(directory), Path(out)
     if out.suffix.lower() not in IMAGE_SUFFIXES:
         raise ShardDirError(f"--out {out}: name an image file ending in {', '.join(IMAGE_SUFFIXES)}")
-    manifest = load_manifest(directory)
+    manifest = read_manifest(directory)
     split = split or next(iter(manifest["splits"]))
     if split not in manifest["splits"]:
-        raise ShardDirError(f"{directory / 'manifest.json'} has no split {split!r}")
+        raise ShardDirError(f"{directory / MANIFEST_FILE} has no split {split!r}")
     rng = np.random.default_rng(seed)
     rows = []
     for files in _clips(directory, manifest["splits"][split]["shards"]):

@@ -23,6 +23,7 @@ import io
 import json
 import tarfile
 from collections.abc import Iterator
+from pathlib import Path
 from typing import BinaryIO
 
 import cv2
@@ -31,7 +32,39 @@ import simplejpeg
 
 ENCODINGS = {"jpeg": "jpgs", "raw": "npy"}  # encoding → member extension
 FORMAT_VERSION = 1
+MANIFEST_FILE = "manifest.json"  # a finished shard directory's index: settings, counts, per-shard checksums
+BUILD_HINT = ("build it with `hauwm shards build --annotations DIR --videos DIR --out {dir}` "
+              "(or `hauwm shards sample-data` first for the built-in data)")
+REBUILD_MANIFEST = ("re-run the `hauwm shards build` command that made the directory: it keeps the finished shards "
+                    "and writes manifest.json and errors.jsonl again")
 NPY_HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+
+
+class ShardDirError(ValueError):
+    """Not a finished shard directory, or a damaged one; the message says how to make or mend it."""
+
+
+def read_manifest(directory: str | Path) -> dict:
+    """`directory/manifest.json`, checked: the directory and the file exist, and it is a manifest of this format."""
+    directory = Path(directory)
+    path = directory / MANIFEST_FILE
+    if not directory.is_dir():
+        raise ShardDirError(f"shard directory {directory} does not exist; {BUILD_HINT.format(dir=directory)}")
+    if not path.is_file():
+        raise ShardDirError(f"{path} not found: {directory} is not a finished shard directory; "
+                            f"{BUILD_HINT.format(dir=directory)} (a build in parts writes it when all parts are done)")
+    try:
+        manifest = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ShardDirError(f"{path} is damaged (not JSON: {err}); {REBUILD_MANIFEST}") from None
+    missing = [key for key in ("format_version", "settings", "splits", "errors")
+               if not isinstance(manifest, dict) or key not in manifest]
+    if missing:
+        raise ShardDirError(f"{path} is not a shard manifest (it has no {', '.join(missing)}); {REBUILD_MANIFEST}")
+    if manifest["format_version"] != FORMAT_VERSION:
+        raise ShardDirError(f"{path} is of shard format {manifest['format_version']!r}; this HAUWM reads format "
+                            f"{FORMAT_VERSION}: build the shards again with it")
+    return manifest
 
 
 def encode_frames(frames: np.ndarray, encoding: str, quality: int = 90) -> bytes:

@@ -65,7 +65,7 @@ def lightning_cli(args: list[str]):
     from lightning.pytorch.cli import LightningCLI
 
     from data_pipeline.datamodule import ShardDataModule
-    from data_pipeline.loader import read_manifest
+    from data_pipeline.shard_format import read_manifest
     from model.config import WorldModelConfig
     from model.module import ConfigError, PretrainModule, refuse_other_size
     from model.progress import StepProgressBar
@@ -192,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"usage:\n{USAGE}")
         return 0
     from data_pipeline.loader import LoaderError
+    from data_pipeline.shard_format import ShardDirError
     from model.export import ExportError
     from model.module import ConfigError
 
@@ -204,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
             return export_command(argv[1:])
         if command == "analyze":
             return analyze_command(argv[1:])
-    except (ConfigError, ExportError, LoaderError) as err:
+    except (ConfigError, ExportError, LoaderError, ShardDirError) as err:
         print(f"hauwm pretrain {command}: error: {err}", file=sys.stderr)
         return 2
     except SystemExit as done:  # --help, --print_config, or a flag the parser refused (it printed why)

@@ -30,7 +30,36 @@ def test_inspect_reports_counts_and_verify_catches_a_damaged_shard(built_shards,
 
 def test_inspect_without_manifest_says_how_to_build(tmp_path, capsys):
     assert main(["inspect", str(tmp_path)]) == 2
-    assert "manifest.json not found; build shards with `hauwm shards build" in capsys.readouterr().err
+    assert f"manifest.json not found: {tmp_path} is not a finished shard directory; build it with `hauwm shards build" \
+        in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("manifest", "message"), [
+    ("{bad", "is damaged (not JSON: "),
+    ('{"name": "something else"}', "is not a shard manifest (it has no format_version, settings, splits, errors)"),
+    ('{"format_version": 99, "settings": {}, "splits": {}, "errors": {}}', "is of shard format 99; this HAUWM reads format 1"),
+])
+def test_a_damaged_or_foreign_manifest_is_named_by_every_reader(built_shards, tmp_path, capsys, manifest, message):
+    shards = tmp_path / "shards"
+    shutil.copytree(built_shards, shards)
+    (shards / "manifest.json").write_text(manifest)
+    assert main(["inspect", str(shards)]) == 2
+    assert main(["preview", str(shards), "--out", str(tmp_path / "p.png")]) == 2
+    from model.cli import main as pretrain
+    assert pretrain(["fit", "--config", "configs/pretrain/tiny.yaml", "--data.shards", str(shards)]) == 2
+    err = capsys.readouterr().err
+    assert err.count(f"{shards / 'manifest.json'} {message}") == 3 and "Traceback" not in err
+
+
+def test_a_damaged_errors_file_is_reported_and_fails_verify(built_shards, tmp_path, capsys):
+    shards = tmp_path / "shards"
+    shutil.copytree(built_shards, shards)
+    with (shards / "errors.jsonl").open("a") as f:
+        f.write("{half a rec\n")
+    assert main(["inspect", str(shards), "--verify"]) == 1
+    out = capsys.readouterr().out
+    assert "errors.jsonl: 1 lines are not clip failures (the file is damaged)" in out
+    assert "FAILED errors.jsonl:" in out and "1 damaged lines" in out
 
 
 def test_preview_writes_a_grid_of_clips(built_shards, tmp_path):

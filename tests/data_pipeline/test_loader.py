@@ -17,7 +17,7 @@ from torch.utils.data import DataLoader
 
 from data_pipeline import SetEpoch, ShardDataModule
 from data_pipeline.loader import LoaderError, SequenceDataset, make_dataloader, shard_set
-from data_pipeline.shard_format import decode_frames, read_samples
+from data_pipeline.shard_format import ShardDirError, decode_frames, read_samples
 
 
 def stored_clips(directory, split):
@@ -204,9 +204,9 @@ def test_too_few_shards_or_clips_give_clear_errors(built_shards, monkeypatch):
 
 
 def test_datamodule_validates_its_inputs(built_shards, tmp_path):
-    with pytest.raises(LoaderError, match=f"{tmp_path / 'none'} does not exist.*hauwm shards build"):
+    with pytest.raises(ShardDirError, match=f"{tmp_path / 'none'} does not exist.*hauwm shards build"):
         ShardDataModule(str(tmp_path / "none")).setup("fit")
-    with pytest.raises(LoaderError, match=f"{tmp_path / 'manifest.json'} not found.*hauwm shards build"):
+    with pytest.raises(ShardDirError, match=f"{tmp_path / 'manifest.json'} not found.*hauwm shards build"):
         ShardDataModule(str(tmp_path)).setup("fit")
     with pytest.raises(LoaderError, match="has no split 'test'.*--split test"):
         ShardDataModule(str(built_shards), val_split="test", batch_size=2, seq_len=8).setup("fit")
