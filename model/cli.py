@@ -66,6 +66,7 @@ def lightning_cli(args: list[str]):
 
     from data_pipeline.datamodule import ShardDataModule
     from data_pipeline.shard_format import read_manifest
+    from model.export import read_checkpoint
     from model.config import WorldModelConfig
     from model.module import ConfigError, PretrainModule, refuse_other_size
     from model.progress import StepProgressBar
@@ -83,7 +84,7 @@ def lightning_cli(args: list[str]):
             ckpt_path = config.get("ckpt_path") if config else None
             if not (ckpt_path and Path(ckpt_path).is_file()):
                 return super()._parse_ckpt_path()
-            saved = torch.load(ckpt_path, weights_only=True, map_location="cpu").get("hyper_parameters", {})
+            saved = read_checkpoint(ckpt_path)[0]["hyper_parameters"]
             asked = WorldModelConfig(**config["model"]["world_model"].as_dict())
             refuse_other_size(saved, asked, str(ckpt_path))
             if saved and "world_model" not in saved:

@@ -142,8 +142,9 @@ def torch_load_failure(err: Exception) -> str:
     return f"it is truncated or not a checkpoint: {reason}"
 
 
-def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dict[str, Any]]:
-    """The WorldModel inside a `hauwm pretrain fit` checkpoint and its provenance (read with weights_only=True)."""
+def read_checkpoint(checkpoint: str | Path) -> tuple[dict[str, Any], WorldModelConfig]:
+    """A `hauwm pretrain fit` checkpoint (read with weights_only=True) and the world-model sizes it was trained
+    with; an ExportError naming the file if it cannot be read or is not one (for export and for resuming a fit)."""
     path = Path(checkpoint)
     if not path.is_file():
         raise ExportError(f"checkpoint {path} not found (fit writes RUN/checkpoints/last.ckpt)")
@@ -151,12 +152,22 @@ def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dic
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
         raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit` "
-                          f"({torch_load_failure(err)}); export another one, e.g. RUN/checkpoints/last.ckpt") from None
-    hparams = state.get("hyper_parameters", {})
+                          f"({torch_load_failure(err)}); use another one, e.g. RUN/checkpoints/last.ckpt") from None
+    if not (isinstance(state, dict) and {"state_dict", "hyper_parameters", "pytorch-lightning_version"} <= state.keys()):
+        raise ExportError(f"{path} is not a Lightning checkpoint (it lacks state_dict, hyper_parameters or "
+                          "pytorch-lightning_version); use one that `hauwm pretrain fit` wrote, e.g. RUN/checkpoints/last.ckpt")
     try:  # the settings under "world_model", or flat in checkpoints written before WorldModelConfig
-        config = WorldModelConfig.from_dict(saved_settings(hparams))
+        config = WorldModelConfig.from_dict(saved_settings(state["hyper_parameters"]))
     except ConfigError as err:
         raise ExportError(f"{path} is not a `hauwm pretrain fit` checkpoint (its hyper_parameters: {err})") from None
+    return state, config
+
+
+def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dict[str, Any]]:
+    """The WorldModel inside a `hauwm pretrain fit` checkpoint and its provenance."""
+    path = Path(checkpoint)
+    state, config = read_checkpoint(path)
+    hparams = state["hyper_parameters"]
     model = WorldModel(config)
     prefix = "world_model."
     model.load_state_dict({name[len(prefix):]: t for name, t in state["state_dict"].items() if name.startswith(prefix)})

@@ -211,6 +211,19 @@ def test_export_of_a_missing_or_damaged_checkpoint_is_refused(tiny_run, tmp_path
     assert not (tmp_path / "out").exists()
 
 
+def test_a_checkpoint_of_something_else_is_refused_by_export_and_by_a_resumed_fit(built_shards, tmp_path, capsys):
+    cases = {"list.ckpt": [1, 2], "plain.ckpt": {"weights": torch.zeros(2)},
+             "foreign.ckpt": {"state_dict": {}, "hyper_parameters": {"lr": 0.1}, "pytorch-lightning_version": "2.6.0"}}
+    for name, content in cases.items():
+        torch.save(content, tmp_path / name)
+        assert main(["export", str(tmp_path / name), "--out", str(tmp_path / "out")]) == 2
+        assert fit(built_shards, tmp_path / "run", "--ckpt_path", str(tmp_path / name)) == 2
+        err = capsys.readouterr().err
+        reason = "is not a `hauwm pretrain fit` checkpoint" if name == "foreign.ckpt" else "is not a Lightning checkpoint"
+        assert err.count(f"{tmp_path / name} {reason}") == 2 and "Traceback" not in err, name
+    assert not (tmp_path / "out").exists() and not (tmp_path / "run" / "checkpoints").exists()
+
+
 def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path):
     out = tmp_path / "analysis"
     args = ["analyze", "--model", str(tiny_export), "--model", str(tiny_export), "--shards", str(built_shards),
