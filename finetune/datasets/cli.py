@@ -191,9 +191,11 @@ def inspect(args: argparse.Namespace) -> None:
 
 
 def list_(args: argparse.Namespace) -> None:
-    from finetune.datasets.minari_io import METADATA_KEY, dataset_path, list_datasets
+    from finetune.datasets.minari_io import METADATA_KEY, dataset_path, scan_datasets
 
-    datasets = list_datasets()
+    datasets, damaged = scan_datasets()
+    for dataset_id, why in damaged.items():
+        print(f"damaged: {dataset_id} ({why}): write it again, or delete {dataset_path(dataset_id)}", file=sys.stderr)
     if not datasets:
         print(f"no datasets under {dataset_path()} (MINARI_DATASETS_PATH); make one with `hauwm datasets collect`")
         return

@@ -21,6 +21,7 @@ with OpenCV's INTER_AREA. Every other mismatch is a `DatasetError` naming the da
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import warnings
 from collections.abc import Iterable, Iterator
@@ -62,13 +63,22 @@ def check_dataset_id(dataset_id: str) -> None:
                            "the -vN version is required)")
 
 
-def list_datasets() -> dict[str, dict[str, Any]]:
-    """Every dataset under $MINARI_DATASETS_PATH: ID -> its metadata (Minari's `list_local_datasets`)."""
+def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
+    """Under $MINARI_DATASETS_PATH: (every dataset's ID -> its metadata, as Minari's `list_local_datasets` gives
+    them; every damaged dataset's ID -> why Minari skipped it)."""
     import minari
 
-    with warnings.catch_warnings():  # a broken dataset directory is skipped, not a reason to fail the listing
-        warnings.simplefilter("ignore")
-        return minari.list_local_datasets()
+    with warnings.catch_warnings(record=True) as caught:  # a damaged dataset is skipped, with a warning
+        warnings.simplefilter("always")
+        datasets = minari.list_local_datasets()
+    damaged = dict(match.groups() for warning in caught
+                   if (match := re.match(r"Misconfigured dataset named (\S+): (.*)", str(warning.message), re.S)))
+    return datasets, damaged
+
+
+def list_datasets() -> dict[str, dict[str, Any]]:
+    """Every readable dataset under $MINARI_DATASETS_PATH: ID -> its metadata."""
+    return scan_datasets()[0]
 
 
 def _missing_message(dataset_id: str) -> str:

@@ -103,10 +103,12 @@ def test_cli_collects_expert_and_random_inspects_merges_and_lists(capsys):
     assert minari.load_dataset("test/medexp-v0").combined_datasets == ["test/random-v0", "test/expert-v0"]
 
     capsys.readouterr()
+    (minari.storage.get_dataset_path("test/random-v0") / "data" / "metadata.json").write_text("{half")
     assert main(["list"]) == 0
-    out = capsys.readouterr().out
-    for dataset_id in ("test/expert-v0", "test/random-v0", "test/medexp-v0"):
-        assert dataset_id in out
+    listing = capsys.readouterr()
+    for dataset_id in ("test/expert-v0", "test/medexp-v0"):
+        assert dataset_id in listing.out
+    assert "test/random-v0" not in listing.out and "damaged: test/random-v0 (Expecting" in listing.err
 
 
 def test_collect_from_a_runs_replay_and_with_its_agent(tmp_path, tiny_config, capsys):
