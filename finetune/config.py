@@ -8,6 +8,7 @@ environment steps (frames: one agent step is `action_repeat` of them), as in the
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -150,11 +151,13 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
             raise ConfigError(f"config file {path} is not valid YAML: {getattr(err, 'problem', err)}{where}") from None
         if not isinstance(values, dict):
             raise ConfigError(f"config file {path} must hold a mapping of settings, found {type(values).__name__}")
-    values.update(overrides or {})
     fields = {f.name: f for f in dataclasses.fields(FinetuneConfig)}
-    unknown = sorted(set(values) - set(fields))
-    if unknown:
-        raise ConfigError(f"unknown setting(s) {unknown} in {path or 'overrides'}; known: {sorted(fields)}")
+    for source, settings in ((f"config file {path}", values), ("the overrides (--set)", overrides or {})):
+        if unknown := sorted(set(settings) - set(fields)):
+            named = [f"{name} (did you mean {close[0]}?)" if (close := difflib.get_close_matches(name, fields, 1))
+                     else name for name in unknown]
+            raise ConfigError(f"unknown setting(s) in {source}: {', '.join(named)}; the settings: {', '.join(sorted(fields))}")
+    values.update(overrides or {})
     if values.get("compile") is False:  # YAML reads a bare `off` as false
         values["compile"] = "off"
     types = typing.get_type_hints(FinetuneConfig)

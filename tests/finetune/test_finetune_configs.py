@@ -32,8 +32,11 @@ def test_demo_config_is_small():
 def test_overrides_are_typed_and_unknown_keys_rejected(tmp_path):
     cfg = load_config(CONFIGS / "demo.yaml", dict([parse_override("steps=1e3"), parse_override("agent=scratch")]))
     assert cfg.steps == 1000 and isinstance(cfg.steps, int) and cfg.agent == "scratch"
-    with pytest.raises(ConfigError, match="unknown setting"):
+    with pytest.raises(ConfigError, match=r"unknown setting\(s\) in the overrides \(--set\): stepz \(did you mean steps\?\)"):
         load_config(CONFIGS / "demo.yaml", {"stepz": 3})
+    (tmp_path / "typo.yaml").write_text("bath_size: 4\nzzz: 1\n")
+    with pytest.raises(ConfigError, match=r"in config file .*typo.yaml: bath_size \(did you mean batch_size\?\), zzz;"):
+        load_config(tmp_path / "typo.yaml")
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "nope.yaml")
     with pytest.raises(ConfigError, match="agent must be"):
