@@ -22,12 +22,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .shard_format import ENCODINGS, FORMAT_VERSION, MANIFEST_FILE, add_clip, open_writer
+from .shard_format import ENCODINGS, ERRORS_FILE, FORMAT_VERSION, MANIFEST_FILE, add_clip, open_writer
 from .ssv2 import ClipRecord, annotation_path, load_labels, load_split
 from .workers import ClipResult, DecodePool, DecodeSettings
 
 SETTINGS_FILE = "build.json"
-ERRORS_FILE = "errors.jsonl"
 
 
 class BuildError(Exception):

@@ -16,9 +16,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .shard_format import REBUILD_MANIFEST, decode_frames, read_manifest
-
-ERRORS_FILE = "errors.jsonl"
+from .shard_format import ERRORS_FILE, REBUILD_MANIFEST, decode_frames, read_manifest
 
 
 def check_shard(path: Path, expected: dict) -> list[str]:

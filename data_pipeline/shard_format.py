@@ -1,4 +1,5 @@
-"""The on-disk shard format: how a clip's frames and metadata become tar members, and back.
+"""The on-disk shard format: how a clip's frames and metadata become tar members, and back; and the
+directory's `manifest.json` (settings, per-split counts, per-shard checksums), read by `read_manifest` alone.
 
 A shard `{split}-{NNNNNN}.tar` holds, per clip, two members named by the SSv2 id (which has no dots):
 
@@ -33,6 +34,7 @@ import simplejpeg
 ENCODINGS = {"jpeg": "jpgs", "raw": "npy"}  # encoding → member extension
 FORMAT_VERSION = 1
 MANIFEST_FILE = "manifest.json"  # a finished shard directory's index: settings, counts, per-shard checksums
+ERRORS_FILE = "errors.jsonl"  # one JSON line per clip that could not be decoded (split, id, reason)
 BUILD_HINT = ("build it with `hauwm shards build --annotations DIR --videos DIR --out {dir}` "
               "(or `hauwm shards sample-data` first for the built-in data)")
 REBUILD_MANIFEST = ("re-run the `hauwm shards build` command that made the directory: it keeps the finished shards "
