@@ -9,7 +9,8 @@ Importing this package sets up headless rendering before anything imports mujoco
 
 - `MUJOCO_GL`: a user's own setting wins; otherwise `egl` where an NVIDIA GPU is visible and an EGL
   context can be made (probed once in a subprocess, with a warning saying why when it cannot), and
-  `osmesa` everywhere else (Debian package `libosmesa6`); see `opengl.py`;
+  `osmesa` everywhere else (Debian package `libosmesa6`); either way the first env made checks once that it
+  can render a frame, and refuses a setting that cannot in one line; see `opengl.py`;
 - dm_control's render-thread offloading is off: each env renders on the thread that uses it, which is
   faster and avoids dm_control's failing clean-up at interpreter exit;
 - triton is imported first where it is installed: it and Mesa's software rasteriser (llvmpipe) each

@@ -6,17 +6,29 @@
   broken EGL install cannot take the training process down, and the subprocesses this process starts
   (env workers) inherit the answer through the environment. When the probe fails, a warning says why.
 - Everywhere else `osmesa` (Mesa's software rasteriser; Debian package `libosmesa6`).
+
+Whatever is in force, the first env made checks once that it can render (a frame drawn in a subprocess, a
+few tenths of a second), so a setting that cannot (`glfw` without a display, a typo, a missing library) is
+refused in one line instead of failing deep inside MuJoCo.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import warnings
 from pathlib import Path
 
-EGL_PROBE = "import mujoco; context = mujoco.GLContext(64, 64); context.make_current(); context.free()"
+# draws one frame: a GL context alone "works" under glfw without a display, and rendering then fails
+RENDER_PROBE = ("import mujoco; model = mujoco.MjModel.from_xml_string('<mujoco/>'); renderer = mujoco.Renderer(model, 8, 8); "
+                "renderer.update_scene(mujoco.MjData(model)); renderer.render(); renderer.close()")
+CHECKED = "HAUWM_MUJOCO_GL_CHECKED"  # set once MUJOCO_GL is known to render; env worker processes inherit it
+
+
+class RenderingError(ValueError):
+    """MuJoCo cannot render with the MUJOCO_GL set; the message says what to set instead."""
 
 
 def nvidia_gpu_visible() -> bool:
@@ -26,25 +38,42 @@ def nvidia_gpu_visible() -> bool:
     return any(Path("/dev").glob("nvidia[0-9]*"))
 
 
-def probe_egl(timeout: float = 60.0) -> str | None:
-    """Make a MuJoCo EGL context in a fresh interpreter: None if that works, else the reason it failed."""
-    env = {**os.environ, "MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "egl"}
+def probe(platform: str, timeout: float = 60.0) -> str | None:
+    """Render a frame with MuJoCo under MUJOCO_GL=`platform` in a fresh interpreter: None if that works, else why
+    not (GLFW's own complaint where it has one: its later errors only say that no context exists)."""
+    env = {**os.environ, "MUJOCO_GL": platform}
+    env.pop("PYOPENGL_PLATFORM", None)
+    if platform in ("egl", "osmesa"):
+        env["PYOPENGL_PLATFORM"] = platform
     try:
-        result = subprocess.run([sys.executable, "-c", EGL_PROBE], env=env, capture_output=True, text=True,
+        result = subprocess.run([sys.executable, "-c", RENDER_PROBE], env=env, capture_output=True, text=True,
                                 timeout=timeout)
     except subprocess.TimeoutExpired:
-        return f"making an EGL context took over {timeout:.0f} s"
+        return f"rendering a frame took over {timeout:.0f} s"
     if result.returncode == 0:
         return None
     lines = result.stderr.strip().splitlines()
-    return lines[-1] if lines else f"exit status {result.returncode}"
+    glfw = [match[1] for line in lines if (match := re.search(r"GLFWError: \(\d+\) b'(.*)'", line))]
+    return (glfw or lines or [f"exit status {result.returncode}"])[0 if glfw else -1]
+
+
+def check_rendering() -> None:
+    """Once per process tree: raise RenderingError if the MUJOCO_GL in force cannot render a frame."""
+    if os.environ.get(CHECKED):
+        return
+    platform = os.environ.get("MUJOCO_GL", "")
+    failure = probe(platform)
+    if failure is not None:
+        raise RenderingError(f"MuJoCo cannot render with MUJOCO_GL={platform!r} ({failure}): unset MUJOCO_GL and HAUWM "
+                             "picks egl on an NVIDIA GPU where it works, osmesa elsewhere (Debian package libosmesa6)")
+    os.environ[CHECKED] = "1"
 
 
 def choose_mujoco_gl() -> str:
     """`egl` on a machine with an NVIDIA GPU where EGL works, else `osmesa` (see the module docstring)."""
     if not nvidia_gpu_visible():
         return "osmesa"
-    failure = probe_egl()
+    failure = probe("egl")
     if failure is None:
         return "egl"
     warnings.warn(

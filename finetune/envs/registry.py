@@ -20,6 +20,7 @@ import importlib
 from types import ModuleType
 
 from finetune.envs.base import PixelEnv
+from finetune.envs.opengl import check_rendering
 
 # The ten tasks of the paper's Table 4, in its order of suites.
 PAPER_TASKS: tuple[str, ...] = (
@@ -67,6 +68,7 @@ def make_env(
     agent steps and defaults to the suite's episode length divided by the action repeat;
     `fast_render` turns off shadows, reflections and multisampling (see `rendering.py`).
     """
+    check_rendering()  # a MUJOCO_GL the user set must be able to draw a frame: once per process tree
     suite = _suite(name)
     tasks = suite.tasks()
     if name not in tasks:

@@ -140,16 +140,30 @@ def test_mujoco_gl_is_egl_only_with_a_gpu_where_egl_works(monkeypatch):
     monkeypatch.setattr(opengl, "nvidia_gpu_visible", lambda: False)
     assert opengl.choose_mujoco_gl() == "osmesa"
     monkeypatch.setattr(opengl, "nvidia_gpu_visible", lambda: True)
-    monkeypatch.setattr(opengl, "probe_egl", lambda: None)
+    monkeypatch.setattr(opengl, "probe", lambda platform: None)
     assert opengl.choose_mujoco_gl() == "egl"
-    monkeypatch.setattr(opengl, "probe_egl", lambda: "eglInitialize failed")
+    monkeypatch.setattr(opengl, "probe", lambda platform: "eglInitialize failed")
     with pytest.warns(UserWarning, match="eglInitialize failed.*OSMesa"):
         assert opengl.choose_mujoco_gl() == "osmesa"
 
 
-def test_egl_probe_reports_why_it_failed(monkeypatch):
-    monkeypatch.setattr(opengl, "EGL_PROBE", "raise SystemExit('no EGL device')")
-    assert opengl.probe_egl() == "no EGL device"
+def test_the_rendering_probe_reports_why_it_failed(monkeypatch):
+    monkeypatch.setattr(opengl, "RENDER_PROBE", "raise SystemExit('no EGL device')")
+    assert opengl.probe("egl") == "no EGL device"
+
+
+@pytest.mark.parametrize(("setting", "reason"), [("glfw", "The DISPLAY environment variable is missing"),
+                                                 ("bogus", "invalid value for environment variable MUJOCO_GL")])
+def test_a_users_mujoco_gl_that_cannot_render_is_refused_in_one_line(export_dir, tmp_path, setting, reason):
+    env = {key: value for key, value in os.environ.items()
+           if key not in ("DISPLAY", "WAYLAND_DISPLAY", "PYOPENGL_PLATFORM", opengl.CHECKED)}
+    env["MUJOCO_GL"] = setting
+    result = subprocess.run([sys.executable, "-m", "hauwm.cli", "finetune", "--config", "configs/finetune/demo.yaml",
+                             "--pretrained", str(export_dir), "--logdir", str(tmp_path / "run"), "--no-progress"],
+                            env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert f"MuJoCo cannot render with MUJOCO_GL={setting!r}" in result.stderr and reason in result.stderr
+    assert "unset MUJOCO_GL" in result.stderr
 
 
 @pytest.mark.parametrize("user_setting", ["osmesa", "egl"])
