@@ -66,8 +66,8 @@ def lightning_cli(args: list[str]):
 
     from data_pipeline.datamodule import ShardDataModule
     from data_pipeline.shard_format import read_manifest
-    from model.export import read_checkpoint
     from model.config import WorldModelConfig
+    from model.export import read_checkpoint
     from model.module import ConfigError, PretrainModule, refuse_other_size
     from model.progress import StepProgressBar
 
