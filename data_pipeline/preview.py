@@ -41,7 +41,7 @@ def write_preview(directory: Path, out: Path, split: str | None = None, clips: i
     manifest = read_manifest(directory)
     split = split or next(iter(manifest["splits"]))
     if split not in manifest["splits"]:
-        raise ShardDirError(f"{directory / MANIFEST_FILE} has no split {split!r}")
+        raise ShardDirError(f"{directory / MANIFEST_FILE} has no split {split!r} (it has {', '.join(manifest['splits'])})")
     rng = np.random.default_rng(seed)
     rows = []
     for files in _clips(directory, manifest["splits"][split]["shards"]):

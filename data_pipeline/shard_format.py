@@ -51,7 +51,8 @@ def read_manifest(directory: str | Path) -> dict:
     directory = Path(directory)
     path = directory / MANIFEST_FILE
     if not directory.is_dir():
-        raise ShardDirError(f"shard directory {directory} does not exist; {BUILD_HINT.format(dir=directory)}")
+        what = "is a file, not a directory" if directory.exists() else "does not exist"
+        raise ShardDirError(f"shard directory {directory} {what}; {BUILD_HINT.format(dir=directory)}")
     if not path.is_file():
         raise ShardDirError(f"{path} not found: {directory} is not a finished shard directory; "
                             f"{BUILD_HINT.format(dir=directory)} (a build in parts writes it when all parts are done)")

@@ -11,7 +11,9 @@
 from __future__ import annotations
 
 import json
+import logging
 import shutil
+import sys
 from pathlib import Path
 
 import pytest
@@ -19,6 +21,18 @@ import pytest
 from data_pipeline.build import BuildConfig, build
 from data_pipeline.sample_data import make_sample_data
 from data_pipeline.ssv2 import annotation_path
+
+
+@pytest.fixture(autouse=True)
+def lightning_logs_to_stderr_after_each_test():
+    """Lightning's log handlers keep the sys.stderr of the moment lightning was first imported. When that was a
+    test's capsys stream, it is closed after the test, and every later Lightning message would print a 'Logging
+    error' traceback into whatever the next test captures; after each test they write to the process's stderr."""
+    yield
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        for handler in logging.getLogger(name).handlers if "lightning" in sys.modules else []:
+            if type(handler) is logging.StreamHandler:
+                handler.stream = sys.__stderr__  # not setStream: it would flush the closed stream first
 
 
 @pytest.fixture(scope="session")

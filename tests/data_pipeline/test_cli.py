@@ -32,6 +32,10 @@ def test_inspect_without_manifest_says_how_to_build(tmp_path, capsys):
     assert main(["inspect", str(tmp_path)]) == 2
     assert f"manifest.json not found: {tmp_path} is not a finished shard directory; build it with `hauwm shards build" \
         in capsys.readouterr().err
+    (tmp_path / "a-file").write_text("")
+    assert main(["inspect", str(tmp_path / "a-file")]) == 2
+    assert f"shard directory {tmp_path / 'a-file'} is a file, not a directory" in capsys.readouterr().err
+    assert main(["preview", str(tmp_path / "a-file"), "--out", str(tmp_path / "p.png")]) == 2
 
 
 @pytest.mark.parametrize(("manifest", "message"), [
