@@ -49,7 +49,7 @@ sys.path.insert(0, str(ROOT))
 
 from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.loader import WORKER_PRIORITIES, SequenceDataset, shard_set  # noqa: E402
-from data_pipeline.shard_format import MANIFEST_FILE  # noqa: E402
+from data_pipeline.shard_format import MANIFEST_FILE, ShardDirError, read_manifest  # noqa: E402
 from model.cli import lightning_cli  # noqa: E402
 from model.config import WorldModelConfig  # noqa: E402
 from model.module import PretrainModule, compiled, step_unless  # noqa: E402
@@ -233,6 +233,11 @@ def main() -> None:
     parser.add_argument("--log-every", type=int, default=None, help="fit's log_every_n_steps (default: the config's)")
     parser.add_argument("--rounds", type=int, default=None, help="times the fits run (GPU: 1; CPU: 3, each bracketed)")
     args = parser.parse_args()
+    if args.shards:  # a wrong --shards fails now, not minutes later
+        try:
+            read_manifest(args.shards)
+        except ShardDirError as err:
+            parser.error(f"--shards: {err}")
     for name in ("lightning.pytorch", "lightning.fabric"):  # not each fit's banner ("GPU available", tips, seed)
         logging.getLogger(name).setLevel(logging.WARNING)
     if args.threads:
