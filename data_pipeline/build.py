@@ -27,6 +27,7 @@ from .ssv2 import ClipRecord, annotation_path, load_labels, load_split
 from .workers import ClipResult, DecodePool, DecodeSettings
 
 SETTINGS_FILE = "build.json"
+MAX_SIZE = 512  # --size: the world model reads 64×64; SSv2's clips are 240 pixels high
 
 
 class BuildError(Exception):
@@ -234,6 +235,8 @@ def validate(config: BuildConfig) -> None:
                              "the directory holding the something-something-v2-*.json files")
     if not config.videos.is_dir():
         raise BuildError(f"--videos {config.videos}: not a directory (it should hold <id>.webm files)")
+    if config.num_parts < 1:
+        raise BuildError(f"--num-parts must be at least 1, got {config.num_parts}")
     if not 0 <= config.part < config.num_parts:
         raise BuildError(f"--part {config.part} must lie in 0..{config.num_parts - 1} (--num-parts {config.num_parts})")
     for flag, value in (("--size", config.size), ("--clips-per-shard", config.clips_per_shard),
@@ -242,6 +245,9 @@ def validate(config: BuildConfig) -> None:
             raise BuildError(f"{flag} must be at least 1, got {value}")
     if config.max_clips is not None and config.max_clips < 1:
         raise BuildError(f"--max-clips must be at least 1, got {config.max_clips}")
+    if config.size > MAX_SIZE:
+        raise BuildError(f"--size {config.size}: frames are at most {MAX_SIZE} pixels a side (SSv2's clips are 240 high; "
+                         "larger frames only upsample them, and cost memory in every decoder process)")
     if not 1 <= config.quality <= 100:
         raise BuildError(f"--quality must lie in 1..100, got {config.quality}")
     if not 0 <= config.max_error_rate <= 1:

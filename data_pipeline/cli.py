@@ -89,7 +89,7 @@ def parser() -> argparse.ArgumentParser:
     flag("--videos", metavar="DIR", type=Path, required=True, help="directory with <id>.webm")
     flag("--split", action="append", choices=SPLITS, help="split to build; repeatable (default: train and validation)")
     flag("--out", metavar="DIR", type=Path, required=True, help="output directory for shards, manifest, errors")
-    flag("--size", metavar="N", type=int, default=64, help="frame side in pixels (default 64)")
+    flag("--size", metavar="N", type=int, default=64, help="frame side in pixels, at most 512 (default 64)")
     flag("--resize", choices=RESIZE_MODES, default="squash",
          help="squash the whole frame to a square, or crop the centre square first (default squash)")
     flag("--encoding", choices=list(ENCODINGS), default="jpeg",

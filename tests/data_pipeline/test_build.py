@@ -204,7 +204,9 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
         build(config, log=quiet)
     config.videos = sample_ssv2 / "videos"
     for setting, value, message in (("max_error_rate", 1.5, "--max-error-rate .* 0..1, got 1.5"),
-                                    ("timeout", 0.0, "--timeout .* must be positive, got 0.0")):
+                                    ("timeout", 0.0, "--timeout .* must be positive, got 0.0"),
+                                    ("num_parts", 0, "--num-parts must be at least 1, got 0"),
+                                    ("size", 100_000, "--size 100000: frames are at most 512 pixels a side")):
         with pytest.raises(BuildError, match=message):
             build(dataclasses.replace(config, **{setting: value}), log=quiet)
     assert not config.out.exists()  # refused before anything was written
