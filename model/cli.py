@@ -53,6 +53,18 @@ def refuse_flat_sizes(args: list[str]) -> None:
                               f"e.g. `model: {{world_model: {{{flat[0]}: {model[flat[0]]}}}}}` (model/config.py)")
 
 
+def refuse_other_frame_size(shards: str | Path, flag: str) -> None:
+    """Refuse (ConfigError) a shard directory whose frames are not the 64×64 the world model's CNNs read."""
+    from data_pipeline.shard_format import read_manifest
+    from model.module import ConfigError
+    from model.networks import IMAGE_SHAPE
+
+    size, side = read_manifest(shards)["settings"]["size"], IMAGE_SHAPE[-1]
+    if size != side:
+        raise ConfigError(f"{flag} {shards} holds {size}×{size} frames; the world model reads {side}×{side}: build "
+                          f"the shards with `hauwm shards build ... --size {side}`")
+
+
 def not_an_advert(record: logging.LogRecord) -> bool:
     """A logging filter: Lightning 2.6 advertises its cloud logger at every Trainer start; a run's output is for the run."""
     return "litlogger" not in str(record.msg)
@@ -65,7 +77,6 @@ def lightning_cli(args: list[str]):
     from lightning.pytorch.cli import LightningCLI
 
     from data_pipeline.datamodule import ShardDataModule
-    from data_pipeline.shard_format import read_manifest
     from model.config import WorldModelConfig
     from model.export import read_checkpoint
     from model.module import ConfigError, PretrainModule, refuse_other_size
@@ -101,7 +112,7 @@ def lightning_cli(args: list[str]):
             config = self.config[self.subcommand]
             if not config.data.shards:
                 raise ConfigError("no shard directory: pass --data.shards DIR (built by `hauwm shards build`)")
-            read_manifest(config.data.shards)  # refuses a missing or unfinished shard directory, with the fix
+            refuse_other_frame_size(config.data.shards, "--data.shards")  # and a missing or unfinished directory
             if config.ckpt_path and not Path(config.ckpt_path).is_file():
                 raise ConfigError(f"--ckpt_path {config.ckpt_path} does not exist")
             trainer = config.trainer
@@ -180,6 +191,7 @@ def analyze_command(argv: list[str]) -> int:
                                ("--k-max", 1 if args.k_max is None else args.k_max, 1), ("--seed", args.seed, 0)):
         if value < least:
             parser.error(f"{flag} must be at least {least}, got {value}")
+    refuse_other_frame_size(args.shards, "--shards")
     written = analyze(args.model, args.shards, args.out, split=args.split, batches=args.batches,
                       batch_size=args.batch_size, seq_len=args.seq_len, k_max=args.k_max, heads=args.heads, seed=args.seed)
     for path in written:

@@ -224,6 +224,18 @@ def test_a_checkpoint_of_something_else_is_refused_by_export_and_by_a_resumed_fi
     assert not (tmp_path / "out").exists() and not (tmp_path / "run" / "checkpoints").exists()
 
 
+def test_shards_of_another_frame_size_are_refused_by_fit_and_analyze(built_shards, tiny_export, tmp_path, capsys):
+    shards = tmp_path / "shards-32"
+    shutil.copytree(built_shards, shards)
+    manifest = json.loads((shards / "manifest.json").read_text())
+    manifest["settings"]["size"] = 32  # as `hauwm shards build --size 32` records it
+    (shards / "manifest.json").write_text(json.dumps(manifest))
+    assert fit(shards, tmp_path / "run") == 2
+    assert main(["analyze", "--model", str(tiny_export), "--shards", str(shards), "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert err.count(f"{shards} holds 32×32 frames; the world model reads 64×64") == 2 and "Traceback" not in err
+
+
 def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path):
     out = tmp_path / "analysis"
     args = ["analyze", "--model", str(tiny_export), "--model", str(tiny_export), "--shards", str(built_shards),
