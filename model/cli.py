@@ -98,7 +98,7 @@ def lightning_cli(args: list[str]):
             saved = read_checkpoint(ckpt_path)[0]["hyper_parameters"]
             asked = WorldModelConfig(**config["model"]["world_model"].as_dict())
             refuse_other_size(saved, asked, str(ckpt_path))
-            if saved and "world_model" not in saved:
+            if "world_model" not in saved:  # read_checkpoint found the sizes, flat at the top level
                 raise ConfigError(
                     f"{ckpt_path} keeps the model sizes flat in its hyper_parameters (written before they moved "
                     "under model.world_model), so this version cannot resume it; `hauwm pretrain export` still "

@@ -54,7 +54,9 @@ def probe(platform: str, timeout: float = 60.0) -> str | None:
         return None
     lines = result.stderr.strip().splitlines()
     glfw = [match[1] for line in lines if (match := re.search(r"GLFWError: \(\d+\) b'(.*)'", line))]
-    return (glfw or lines or [f"exit status {result.returncode}"])[0 if glfw else -1]
+    if glfw:
+        return glfw[0]
+    return lines[-1] if lines else f"exit status {result.returncode}"
 
 
 def check_rendering() -> None:
