@@ -18,9 +18,9 @@ One command, in LOGDIR (default runs/bench_downstream), each step skipped when i
 5. a table: return over the last evaluation's 10 episodes (mean ± std), normalised between the random
    policy (0) and the scripted expert (1) measured here at the same settings (short episodes, so Table 4's
    500-step references do not apply), and the success rate; u on dataset vs imagined states;
-6. with --final-episodes N: every run's last checkpoint and both references played again for N episodes,
-   all from the same env seed (the same goal placements), since 10 episodes tell 30% from 40% success
-   poorly (a binomial standard error of 15 points).
+6. with --final-episodes N: every run's last checkpoint, its best evaluation's (best.pt) and both
+   references played again for N episodes, all from the same env seed (the same goal placements), since
+   10 episodes tell 30% from 40% success poorly (a binomial standard error of 15 points).
 
 On a GPU, the repeat on a DMC task (no scripted expert there): an online run first, whose replay is the
 medium part and whose agent plays the expert part and the demonstrations (`--from-run`), then the same
@@ -188,14 +188,15 @@ def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[flo
 
 
 def final_report(args: argparse.Namespace, names: list[str]) -> None:
-    """Each run's last checkpoint and both references, --final-episodes episodes each from one env seed."""
+    """Each run's last and best checkpoints and both references, --final-episodes episodes each from one env seed."""
     from finetune.envs import make_env
-    from finetune.train import evaluate, load_trained
+    from finetune.train import BEST, CHECKPOINT, evaluate, load_trained
 
     episodes, seed = args.final_episodes, args.seed + 20_000
     refs = references(args, episodes, seed)
     low, high = refs["random"][0], refs["expert"][0]
-    print(f"\nlast checkpoints played again: {episodes} episodes each, env seed {seed} for all")
+    print(f"\nlast checkpoints and the best evaluations' (best.pt, marked *) played again: {episodes} episodes each, "
+          f"env seed {seed} for all")
     print(f"{'run':<28} {'at':>8} {'return':>20} {'normalised':>11} {'success':>8} {'± s.e.':>7}")
 
     def row(name: str, at: str, mean: float, std: float, success: float) -> None:
@@ -207,15 +208,22 @@ def final_report(args: argparse.Namespace, names: list[str]) -> None:
         row(name + " policy", "", mean, std, success)
     for name in names:
         logdir = args.logdir / name
-        if not (logdir / "checkpoint.pt").exists():
+        if not (logdir / CHECKPOINT).exists():
             print(f"{name:<28} (no checkpoint yet)")
             continue
-        env = make_env(args.task, seed=seed, **args.env)
-        cfg, agent, counters = load_trained(logdir, args.pretrained, env.action_space.shape[0])
-        result = evaluate(agent, env, episodes, args.task, seed=seed)
-        env.close()
-        at = f"u{counters['updates']}" if cfg.paradigm == "offline" else f"e{counters['env_step']}"
-        row(name, at, result["return"], result["return_std"], result.get("success_rate", float("nan")))
+        played = set()
+        for checkpoint in (CHECKPOINT, BEST):
+            if not (logdir / checkpoint).exists():  # a run from before best.pt existed
+                continue
+            env = make_env(args.task, seed=seed, **args.env)
+            cfg, agent, counters = load_trained(logdir, args.pretrained, env.action_space.shape[0], checkpoint=checkpoint)
+            at = f"u{counters['updates']}" if cfg.paradigm == "offline" else f"e{counters['env_step']}"
+            if at not in played:  # best.pt of the last evaluation is the last checkpoint
+                result = evaluate(agent, env, episodes, args.task, seed=seed)
+                row(name + ("*" if checkpoint == BEST else ""), at, result["return"], result["return_std"],
+                    result.get("success_rate", float("nan")))
+            played.add(at)
+            env.close()
 
 
 def main() -> int:

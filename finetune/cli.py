@@ -96,7 +96,21 @@ def main(argv: list[str] | None = None) -> int:
         unit = "updates" if paradigm == "offline" else "env steps"
         print(f"nothing to train: {cfg.logdir} has already run its budget of {cfg.steps} {unit} (a larger --steps "
               f"goes on from its checkpoint); {last_evaluation(Path(cfg.logdir))}")
+    print(best_kept(Path(cfg.logdir), "update" if paradigm == "offline" else "env step"))
     return 0
+
+
+def best_kept(logdir: Path, unit: str) -> str:
+    """Which evaluation the run's best.pt is of, e.g. 'best evaluation: return 1.3 at update 750, its agent in …'."""
+    import torch
+
+    from finetune.train import BEST
+
+    if not (logdir / BEST).is_file():
+        return "no evaluation has been kept (best.pt is written at evaluations)"
+    counters = torch.load(logdir / BEST, map_location="cpu", weights_only=True, mmap=True)["counters"]
+    return (f"best evaluation: return {counters['best_return']:.4g} at {unit} {counters['best_at']}, its agent in "
+            f"{logdir / BEST}")
 
 
 def last_evaluation(logdir: Path) -> str:

@@ -8,8 +8,9 @@ batch and take one actor and one critic step, with the penalised reward of eq. 6
 in place of the reward head's. Counts here are updates: `steps` updates in all, evaluation (the actor's
 mode, `eval_episodes` episodes, returns normalised by Table 4), logs and checkpoints every `eval_every`,
 `log_every` and `checkpoint_every` updates. `checkpoint.pt` holds the agent, its optimisers, both random
-states and the counters; each evaluation reseeds its env, so a resumed run continues exactly as an
-unbroken one (same batches, same weights, same evaluation episodes).
+states and the counters, and `best.pt` the agent of the best evaluation so far; each evaluation reseeds
+its env, so a resumed run continues exactly as an unbroken one (same batches, same weights, same
+evaluation episodes).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from finetune.config import FinetuneConfig
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
-from finetune.train import (CHECKPOINT, FinetuneError, close_window, evaluate, exclusive, load_dataset,
+from finetune.train import (CHECKPOINT, FinetuneError, close_window, evaluate, exclusive, keep_best, load_dataset,
                             next_multiple, save_checkpoint, start_run, task_env)
 from finetune.world_model import Latent
 
@@ -86,6 +87,7 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
         if updates >= counters["next_eval"] or updates >= cfg.steps:
             last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=cfg.seed + 10_000 + updates)
             logger.write("eval", updates, last_eval)
+            keep_best(Path(cfg.logdir), agent, cfg, counters, fingerprint, last_eval, updates)
             bar.write(f"eval at {updates} updates: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
             counters["next_eval"] = next_multiple(updates, cfg.eval_every)
         if updates >= counters["next_checkpoint"] or updates >= cfg.steps:

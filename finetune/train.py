@@ -8,6 +8,7 @@ Every `eval_every` env steps the policy's mode plays `eval_episodes` episodes on
 environment; returns are logged raw and normalised with the paper's Table 4 references where the task
 has them. `checkpoint.pt` in the run directory holds everything but the frozen export and the replay
 (the replay's episodes are on disk in `replay/`); starting again with the same --logdir resumes.
+`best.pt` holds the agent of the evaluation with the highest mean return so far (`keep_best`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from finetune.rollout import AgentPolicy, play_episode
 from model.export import torch_load_failure
 
 CHECKPOINT = "checkpoint.pt"
+BEST = "best.pt"  # the agent at its best evaluation so far (keep_best)
 LOCK = ".lock"
 ENV_SEED_STRIDE = 1_000_000  # env i of a run starts from seed + i · this (env 0: the seed a single env gets)
 
@@ -111,7 +113,7 @@ def export_fingerprint(pretrained: str | Path | None) -> str:
     return digest.hexdigest()
 
 
-def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, int], fingerprint: str,
+def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: str,
                     rng: np.random.Generator | None = None) -> None:
     """`rng`: the replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
     state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
@@ -133,7 +135,7 @@ def settings_before_they_existed(paradigm: str) -> dict[str, object]:
 
 
 def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
-                    rng: np.random.Generator | None = None) -> dict[str, int]:
+                    rng: np.random.Generator | None = None) -> dict[str, float]:
     try:
         state = torch.load(path, map_location=agent.device, weights_only=True)
     except Exception as err:
@@ -160,15 +162,17 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
 
 
 def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
-                 device: torch.device = torch.device("cpu")) -> tuple[FinetuneConfig, Agent, dict[str, int]]:
-    """A run's agent (online, offline or imitation, as its config says) as its last checkpoint left it, in eval
-    mode: (the run's config, the agent, its counters); to play it (datasets) and for benches and diagnoses."""
+                 device: torch.device = torch.device("cpu"), checkpoint: str = CHECKPOINT
+                 ) -> tuple[FinetuneConfig, Agent, dict[str, float]]:
+    """A run's agent (online, offline or imitation, as its config says) as its `checkpoint` (the last one, or
+    BEST) left it, in eval mode: (the run's config, the agent, its counters then); to play it (datasets) and
+    for benches and diagnoses."""
     from finetune.config import load_config
     from finetune.imitation import ImitationAgent
     from finetune.offline import OfflineAgent
 
     logdir = Path(logdir)
-    for name in ("config.yaml", CHECKPOINT):
+    for name in ("config.yaml", checkpoint):
         if not (logdir / name).is_file():
             raise FinetuneError(f"{logdir} holds no {name}: not a run directory, or a run that has not checkpointed yet")
     written = yaml.safe_load((logdir / "config.yaml").read_text())
@@ -178,7 +182,7 @@ def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
     agent_class = {"online": Agent, "offline": OfflineAgent, "imitation": ImitationAgent}[cfg.paradigm]
     hauwm = pretrained if cfg.agent == "hauwm" else None
     agent = build_agent(cfg, action_dim, hauwm, device, agent_class)
-    counters = load_checkpoint(logdir / CHECKPOINT, agent, cfg, export_fingerprint(hauwm))
+    counters = load_checkpoint(logdir / checkpoint, agent, cfg, export_fingerprint(hauwm))
     agent.eval()
     return cfg, agent, counters
 
@@ -202,6 +206,16 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
     if task.startswith("metaworld"):
         result["success_rate"] = float(np.mean(successes))
     return result
+
+
+def keep_best(logdir: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: str,
+              result: dict[str, float], step: int) -> None:
+    """Save the agent to logdir/BEST when evaluation `result` (at `step`) has the run's highest mean return so
+    far (the first of equals); `counters` keep that return and step, so a resumed run goes on comparing."""
+    if result["return"] <= counters.get("best_return", -np.inf):
+        return
+    counters["best_return"], counters["best_at"] = result["return"], step
+    save_checkpoint(logdir / BEST, agent, cfg, counters, fingerprint)
 
 
 def mean_metrics(window: list[dict[str, torch.Tensor]]) -> dict[str, float]:
@@ -271,7 +285,7 @@ def task_env(cfg: FinetuneConfig, seed: int):
 
 
 def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: type[Agent], action_dim: int,
-              counters: dict[str, int], rng: np.random.Generator) -> tuple[Agent, str, dict[str, int]]:
+              counters: dict[str, float], rng: np.random.Generator) -> tuple[Agent, str, dict[str, float]]:
     """The start every paradigm shares: torch's threads and seed, the agent, and the run directory's checkpoint
     if there is one (it restores the agent, `rng` and the counters; a fresh run keeps `counters`); config.yaml
     written. -> (agent, the export's fingerprint, counters)."""
@@ -319,7 +333,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
 
 
 def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, replay: Replay, rng: np.random.Generator,
-         logger: Logger, counters: dict[str, int], checkpoint: Path, fingerprint: str, progress: bool,
+         logger: Logger, counters: dict[str, float], checkpoint: Path, fingerprint: str, progress: bool,
          reseed: bool) -> dict[str, float]:
     """Act in `envs` (a gymnasium vector env), store finished episodes, update, log, evaluate, checkpoint.
 
@@ -404,6 +418,7 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
             eval_seed = cfg.seed + 10_000 + counters["env_step"] if reseed else None
             last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=eval_seed)
             logger.write("eval", counters["env_step"], last_eval)
+            keep_best(checkpoint.parent, agent, cfg, counters, fingerprint, last_eval, counters["env_step"])
             bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
             counters["next_eval"] = next_multiple(counters["env_step"], cfg.eval_every)
         if counters["env_step"] >= counters["next_checkpoint"] or counters["env_step"] >= cfg.steps:

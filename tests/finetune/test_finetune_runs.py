@@ -9,7 +9,7 @@ import torch
 
 from finetune.cli import main
 from finetune.config import load_config
-from finetune.train import CHECKPOINT, build_agent, exclusive, export_fingerprint, load_checkpoint, train
+from finetune.train import BEST, CHECKPOINT, build_agent, exclusive, export_fingerprint, load_checkpoint, train
 from model.export import export_frozen
 from model.world_model import WorldModel
 
@@ -63,6 +63,14 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert main(args + ["--steps", "200"]) == 0  # a budget the run has already spent: it says so, and changes nothing
     assert "nothing to train" in (out := capsys.readouterr().out) and "last evaluation at env_step 280: return" in out
     assert torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]["env_step"] == 280
+
+    # best.pt: the agent of the first evaluation of highest mean return, across the resume; the CLI names it
+    evaluations = rows(logdir / "eval.csv")
+    best_row = max(evaluations, key=lambda row: float(row["return"]))
+    best = torch.load(logdir / BEST, weights_only=True)["counters"]
+    assert best["env_step"] == best["best_at"] == int(best_row["env_step"])
+    assert best["best_return"] == pytest.approx(float(best_row["return"]))
+    assert f"best evaluation: return {best['best_return']:.4g} at env step {best['best_at']}" in out
 
 
 def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes, tmp_path, capsys):

@@ -10,7 +10,7 @@ import torch
 from finetune.config import ConfigError
 from finetune.offline import OfflineAgent, train_offline
 from finetune.penalty import uncertainty
-from finetune.train import CHECKPOINT, FinetuneError, load_trained
+from finetune.train import BEST, CHECKPOINT, FinetuneError, load_trained
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
 KINDS = ("loglik_std", "max_std", "mean_disagreement")
@@ -86,6 +86,15 @@ def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir,
     assert all(torch.equal(value, agent.trainable_state_dict()[key]) for key, value in first["agent"].items())
     with pytest.raises(FinetuneError, match="holds no config.yaml"):
         load_trained(tmp_path / "nothing", export_dir, action_dim=4)
+
+    # best.pt holds the agent of the evaluation of highest mean return, the same whether the run was resumed
+    returns = {int(row["update"]): float(row["return"]) for row in rows(tmp_path / "whole" / "eval.csv")}
+    best_at = max(returns, key=returns.get)
+    _, best, counters = load_trained(tmp_path / "whole", export_dir, action_dim=4, checkpoint=BEST)
+    assert counters["updates"] == counters["best_at"] == best_at and counters["best_return"] == returns[best_at]
+    halves = torch.load(tmp_path / "halves" / BEST, weights_only=True)
+    assert halves["counters"] == counters and first["counters"]["best_at"] == best_at
+    assert all(torch.equal(value, best.trainable_state_dict()[key]) for key, value in halves["agent"].items())
 
     minari_dataset("test/other-v0", random_episodes(2, 12, 4, seed=5), "metaworld_drawer_close")
     with pytest.raises(FinetuneError, match="dataset='test/two-episodes-v0'"):  # a run directory of another dataset
