@@ -23,7 +23,7 @@ One command, in LOGDIR (default runs/bench_downstream), each step skipped when i
    10 episodes tell 30% from 40% success poorly (a binomial standard error of 15 points).
 
 On a GPU, the repeat on a DMC task (no scripted expert there): an online run first, whose replay is the
-medium part and whose agent plays the expert part and the demonstrations (`--from-run`), then the same
+medium part and whose best agent (best.pt) plays the expert part and the demonstrations (`--from-run`), then the same
 runs at Table 3 sizes (`--gpu`; several calls of under 10 minutes each, as every step resumes):
 
     python bench/bench_learning.py --gpu --agent hauwm --pretrained DIR --logdir runs/cheetah
@@ -72,7 +72,7 @@ def variant(args: argparse.Namespace) -> str:
 
 def dataset_ids(args: argparse.Namespace) -> dict[str, str]:
     """The datasets' ids; the noisy part names its σ, and medexp its variant, when they are not the default.
-    With --from-run the medium part is the run's replay and the expert its agent."""
+    With --from-run the medium part is the run's replay and the expert its best evaluation's agent (best.pt)."""
     name = args.task.split("_", 1)[1]  # drawer_close, cheetah_run
     medium = "replay" if args.from_run else f"noisy{noise_tag(args)}"
     expert = "agent" if args.from_run else "expert"
@@ -91,7 +91,7 @@ def datasets(args: argparse.Namespace) -> dict[str, str]:
     task = ["--task", args.task, *[item for key, value in args.env.items() if value is not None
                                    for item in ("--set", f"{key}={value}")]]
     if args.from_run:  # the run's replay, and its agent's episodes (the run's env settings come with it)
-        agent = ["--policy", "agent", "--checkpoint", str(args.from_run), "--pretrained", str(args.pretrained),
+        agent = ["--policy", "agent", "--checkpoint", str(args.from_run), "--best", "--pretrained", str(args.pretrained),
                  "--device", args.sizes["device"]]
         plans = {"expert": [*agent, "--episodes", str(args.expert_episodes), "--seed", "0"],
                  "medium": ["--from-run", str(args.from_run)],
@@ -116,10 +116,11 @@ def datasets(args: argparse.Namespace) -> dict[str, str]:
 
 def references(args: argparse.Namespace, episodes: int, seed: int) -> dict[str, tuple[float, float, float]]:
     """(mean return, its std, success rate) of the random policy and the expert (Meta-World's scripted one, or
-    with --from-run the run's agent), `episodes` each."""
+    with --from-run the run's best evaluation's agent), `episodes` each."""
     from finetune.datasets.sources import ExpertPolicy, RandomPolicy, load_agent_policy
     from finetune.envs import make_env
     from finetune.rollout import play_episode
+    from finetune.train import BEST
 
     result = {}
     for name in ("random", "expert"):
@@ -128,7 +129,8 @@ def references(args: argparse.Namespace, episodes: int, seed: int) -> dict[str, 
         if name == "random":
             policy = RandomPolicy(env.action_space)
         elif args.from_run:
-            policy = load_agent_policy(args.from_run, args.pretrained, args.sizes["device"], False, env.action_space.shape[0])
+            policy = load_agent_policy(args.from_run, args.pretrained, args.sizes["device"], False,
+                                       env.action_space.shape[0], BEST)
         else:
             policy = ExpertPolicy(env, 0.0, seed)
         played = [play_episode(env, policy, seed=seed if i == 0 else None) for i in range(episodes)]

@@ -3,7 +3,7 @@
     hauwm datasets collect --task metaworld_drawer_close --policy expert --episodes 50 --dataset-id hauwm/drawer_close-expert-v0
     hauwm datasets collect --task metaworld_drawer_close --policy expert --action-noise 0.5 --episodes 50 --dataset-id hauwm/drawer_close-medium-v0
     hauwm datasets collect --task metaworld_drawer_close --policy random --episodes 50 --dataset-id hauwm/drawer_close-random-v0
-    hauwm datasets collect --policy agent --checkpoint RUNDIR [--pretrained DIR] --episodes 50 --dataset-id hauwm/drawer_close-agent-v0
+    hauwm datasets collect --policy agent --checkpoint RUNDIR [--best] [--pretrained DIR] --episodes 50 --dataset-id hauwm/drawer_close-agent-v0
     hauwm datasets collect --from-run RUNDIR --dataset-id hauwm/drawer_close-medium_replay-v0
     hauwm datasets merge hauwm/drawer_close-medium_replay-v0 hauwm/drawer_close-expert-v0 --out hauwm/drawer_close-medexp-v0
     hauwm datasets inspect hauwm/drawer_close-expert-v0
@@ -19,6 +19,7 @@ import math
 import sys
 import time
 from collections.abc import Iterable, Iterator
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
@@ -42,6 +43,8 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--action-noise", type=float, default=0.0, metavar="SIGMA",
                    help="expert: add N(0, SIGMA^2) to every action dimension, clipped to [-1, 1] (medium-quality data)")
     c.add_argument("--checkpoint", metavar="RUNDIR", help="agent: the `hauwm finetune` run directory to play")
+    c.add_argument("--best", action="store_true", help="agent: play the run's best.pt (its best evaluation's agent) "
+                                                       "instead of its last checkpoint")
     c.add_argument("--pretrained", help="agent: the export the run was trained on (not needed for agent=scratch runs)")
     c.add_argument("--sample", action="store_true", help="agent: sample actions instead of the actor's mode")
     c.add_argument("--device", default="auto", help="agent: auto, cpu or cuda")
@@ -113,6 +116,9 @@ def collect(args: argparse.Namespace) -> None:
     if args.action_noise and args.policy != "expert":
         raise DatasetError(f"--action-noise is added to the scripted expert's actions (--policy expert), not to "
                            f"{'the replay of --from-run' if args.from_run else f'--policy {args.policy}'}; drop it")
+    if args.best and args.policy != "agent":
+        raise DatasetError("--best picks which checkpoint of a run --policy agent plays; drop it, or add --policy agent "
+                           "--checkpoint RUNDIR")
     overrides = env_settings(args.set)
     if args.from_run:
         if args.policy or overrides:
@@ -149,8 +155,12 @@ def collect(args: argparse.Namespace) -> None:
         elif args.policy == "random":
             policy = RandomPolicy(env.action_space)
         else:
-            policy = load_agent_policy(args.checkpoint, args.pretrained, args.device, args.sample, env.action_space.shape[0])
-            metadata.update(checkpoint=str(args.checkpoint), actions="sample" if args.sample else "mode")
+            from finetune.train import BEST, CHECKPOINT
+
+            checkpoint = BEST if args.best else CHECKPOINT
+            policy = load_agent_policy(args.checkpoint, args.pretrained, args.device, args.sample,
+                                       env.action_space.shape[0], checkpoint)
+            metadata.update(checkpoint=str(Path(args.checkpoint) / checkpoint), actions="sample" if args.sample else "mode")
         total, episodes = args.episodes, policy_episodes(env, policy, args.episodes)
 
     summary = Summary(metadata["task"])

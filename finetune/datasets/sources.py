@@ -69,12 +69,13 @@ class ExpertPolicy:
 
 
 def load_agent_policy(rundir: str | Path, pretrained: str | Path | None, device: str, explore: bool,
-                      action_dim: int) -> AgentPolicy:
-    """The agent of a `hauwm finetune` run (RUNDIR/config.yaml + RUNDIR/checkpoint.pt) as a policy."""
+                      action_dim: int, checkpoint: str = "checkpoint.pt") -> AgentPolicy:
+    """The agent of a `hauwm finetune` run (RUNDIR/config.yaml + RUNDIR/`checkpoint`, its last checkpoint by
+    default or best.pt) as a policy."""
     from finetune.train import FinetuneError, load_trained, resolve_device
 
     try:
-        _, agent, _ = load_trained(Path(rundir), pretrained, action_dim, resolve_device(device))
+        _, agent, _ = load_trained(Path(rundir), pretrained, action_dim, resolve_device(device), checkpoint)
     except FinetuneError as error:
         raise DatasetError(f"--checkpoint {rundir}: {error}") from None
     return AgentPolicy(agent, explore)

@@ -18,13 +18,14 @@ import torch
 import yaml
 from minari.data_collector import EpisodeBuffer
 
-from finetune.datasets import DatasetError, load_episodes, merge_datasets, write_dataset
+from finetune.datasets import DatasetError, list_datasets, load_episodes, merge_datasets, write_dataset
+from finetune.datasets.minari_io import hauwm_metadata, open_dataset
 from finetune.datasets.cli import main
 from finetune.datasets.sources import RandomPolicy
 from finetune.envs import make_env
 from finetune.replay import KEYS, Replay
 from finetune.rollout import play_episode
-from finetune.train import CHECKPOINT, build_agent, save_checkpoint
+from finetune.train import BEST, CHECKPOINT, build_agent, save_checkpoint
 
 TASK = "metaworld_drawer_close"
 
@@ -134,6 +135,15 @@ def test_collect_from_a_runs_replay_and_with_its_agent(tmp_path, tiny_config, ca
     assert episode["obs"].shape == (11, 3, 64, 64)  # the run's time limit
     assert main(["collect", "--from-run", str(rundir), "--task", "dmc_cheetah_run", "--dataset-id", "test/x-v0"]) == 2
     assert "trained on metaworld_drawer_close" in capsys.readouterr().err
+
+    best = args[:-2] + ["test/best-v0", "--best", "--no-progress"]  # best.pt: the run's best evaluation's agent
+    assert main(best) == 2 and f"{rundir} holds no best.pt: no evaluation has been kept" in capsys.readouterr().err
+    (rundir / CHECKPOINT).rename(rundir / BEST)
+    assert main(best) == 0 and "test/best-v0" in list_datasets()
+    assert hauwm_metadata(open_dataset("test/best-v0"))["checkpoint"] == str(rundir / BEST)
+    assert main(["collect", "--policy", "random", "--best", "--task", TASK, "--episodes", "1", "--dataset-id",
+                 "test/y-v0"]) == 2
+    assert "--best picks which checkpoint of a run --policy agent plays" in capsys.readouterr().err
 
 
 def test_missing_malformed_and_existing_ids_are_refused_with_what_exists(random_episodes, capsys):
