@@ -69,13 +69,13 @@ class ExpertPolicy:
 
 
 def load_agent_policy(rundir: str | Path, pretrained: str | Path | None, device: str, explore: bool,
-                      action_dim: int, checkpoint: str = "checkpoint.pt") -> AgentPolicy:
-    """The agent of a `hauwm finetune` run (RUNDIR/config.yaml + RUNDIR/`checkpoint`, its last checkpoint by
-    default or best.pt) as a policy."""
-    from finetune.train import FinetuneError, load_trained, resolve_device
+                      action_dim: int, checkpoint: str | None = None) -> AgentPolicy:
+    """The agent of a `hauwm finetune` run (RUNDIR/config.yaml + RUNDIR/`checkpoint`: its last checkpoint by
+    default, or best.pt) as a policy."""
+    from finetune.train import CHECKPOINT, FinetuneError, load_trained, resolve_device
 
     try:
-        _, agent, _ = load_trained(Path(rundir), pretrained, action_dim, resolve_device(device), checkpoint)
+        _, agent, _ = load_trained(Path(rundir), pretrained, action_dim, resolve_device(device), checkpoint or CHECKPOINT)
     except FinetuneError as error:
         raise DatasetError(f"--checkpoint {rundir}: {error}") from None
     return AgentPolicy(agent, explore)
