@@ -5,10 +5,12 @@
     hauwm finetune --config configs/finetune/dmc_cheetah_run.yaml --set agent=scratch   # baseline
     hauwm finetune offline --config configs/offline/metaworld_drawer_close.yaml --pretrained DIR --dataset ID
     hauwm finetune imitate --config configs/imitation/metaworld_drawer_close.yaml --pretrained DIR --demos ID
+    hauwm finetune evaluate RUNDIR --pretrained DIR [--best] [--episodes 50]
 
 Without a subcommand it runs online RL; `offline` learns from a fixed dataset (no environment step but
 evaluation; --steps counts updates there) and `imitate` from expert demonstrations without the
 environment's reward (docs/downstream.md). Running again with the same --logdir resumes from its checkpoint.
+`evaluate` plays a run's last checkpoint (or with --best its best.pt) for --episodes episodes.
 """
 
 from __future__ import annotations
@@ -51,6 +53,52 @@ def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
     return p
 
 
+def evaluate_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hauwm finetune evaluate", description="Play a `hauwm finetune` run's agent (the "
+                                "actor's mode) on its task and print its mean return, normalised return and success rate.")
+    p.add_argument("rundir", type=Path, metavar="RUNDIR", help="the run directory (--logdir of the run)")
+    p.add_argument("--pretrained", help="the export the run was trained on (not needed for agent=scratch runs)")
+    p.add_argument("--best", action="store_true", help="play best.pt (the run's best evaluation) instead of its last checkpoint")
+    p.add_argument("--episodes", type=int, help="episodes to play (default: the run's eval_episodes)")
+    p.add_argument("--seed", type=int, help="env seed of the first episode (default: the run's seed + 20,000, "
+                                             "placements its evaluations during training did not use)")
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
+    return p
+
+
+def evaluate_run(argv: list[str]) -> int:
+    """`hauwm finetune evaluate`: one line with the run's agent's returns over --episodes fresh episodes."""
+    from finetune.datasets.sources import DatasetError, run_config
+    from finetune.pretrained import PretrainedError
+    from finetune.train import BEST, CHECKPOINT, FinetuneError, evaluate, load_trained, resolve_device, task_env
+
+    args = evaluate_parser().parse_args(argv)
+    try:
+        cfg = run_config(args.rundir)
+        episodes = cfg.eval_episodes if args.episodes is None else args.episodes
+        seed = cfg.seed + 20_000 if args.seed is None else args.seed
+        if episodes < 1 or seed < 0:
+            raise FinetuneError(f"--episodes must be >= 1 and --seed >= 0, got {episodes} and {seed}")
+        env = task_env(cfg, seed)
+        if cfg.agent == "hauwm" and args.pretrained is None:
+            raise FinetuneError(f"{args.rundir} trained agent 'hauwm' on a frozen export: pass that export with "
+                                "--pretrained DIR (its sha256 is checked)")
+        checkpoint = BEST if args.best else CHECKPOINT
+        pretrained = args.pretrained if cfg.agent == "hauwm" else None
+        cfg, agent, counters = load_trained(args.rundir, pretrained, env.action_space.shape[0],
+                                            resolve_device(args.device), checkpoint)
+        result = evaluate(agent, env, episodes, cfg.task, seed=seed, progress=not args.no_progress)
+        env.close()
+    except (DatasetError, FinetuneError, PretrainedError) as error:
+        print(f"hauwm finetune evaluate: error: {error}", file=sys.stderr)
+        return 2
+    at = f"update {counters['updates']}" if cfg.paradigm == "offline" else f"env step {counters['env_step']}"
+    print(f"{cfg.task} ({cfg.agent}, {cfg.paradigm}) {args.rundir / checkpoint} at {at}, {episodes} episodes from env "
+          f"seed {seed}: " + ", ".join(f"{k} {v:.4g}" for k, v in result.items()))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from finetune.config import ConfigError, load_config, parse_override
     from finetune.pretrained import PretrainedError
@@ -58,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     from finetune.train import CHECKPOINT, FinetuneError
 
     argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "evaluate":
+        return evaluate_run(argv[1:])
     subcommand = argv[0] if argv and argv[0] in SUBCOMMANDS else None
     args = parser(subcommand).parse_args(argv[1:] if subcommand else argv)
     paradigm = SUBCOMMANDS[subcommand][0] if subcommand else "online"

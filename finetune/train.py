@@ -189,14 +189,16 @@ def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
     return cfg, agent, counters
 
 
-def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None) -> dict[str, float]:
+def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None,
+             progress: bool = False) -> dict[str, float]:
     """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate.
     `seed` reseeds the env first (the same episodes whenever this evaluation is run again, e.g. after resume)."""
     from finetune.envs.references import normalised_return
 
     policy = AgentPolicy(agent, explore=False)
     returns, successes = [], []
-    for index in range(episodes):
+    for index in tqdm(range(episodes), unit=" episode", desc=f"evaluate {task}", disable=not progress,
+                      dynamic_ncols=True, leave=False):
         episode = play_episode(env, policy, seed=seed if index == 0 else None)
         returns.append(float(episode["reward"].sum(dtype=np.float64)))
         successes.append(bool(episode.get("success", np.zeros(1)).any()))
