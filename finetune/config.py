@@ -136,19 +136,24 @@ class FinetuneConfig:
             raise ConfigError("penalty_frozen_weight needs the frozen stream: the scratch agent has none; set it to 0")
 
 
+WHERE_CONFIGS_ARE = "the configs are in configs/finetune/, configs/offline/ and configs/imitation/"
+
+
 def load_config(path: str | Path | None, overrides: dict[str, object] | None = None) -> FinetuneConfig:
     """Read a YAML config (None: the defaults) and apply `overrides`; unknown keys are an error."""
     values: dict[str, object] = {}
     if path is not None:
         path = Path(path)
         if not path.is_file():
-            raise ConfigError(f"config file {path} not found (configs are in configs/finetune/)")
+            raise ConfigError(f"config file {path} not found ({WHERE_CONFIGS_ARE})")
         try:
-            values = yaml.safe_load(path.read_text()) or {}
+            values = yaml.safe_load(path.read_text())
         except yaml.YAMLError as err:
             mark = getattr(err, "problem_mark", None)
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
             raise ConfigError(f"config file {path} is not valid YAML: {getattr(err, 'problem', err)}{where}") from None
+        if values is None:  # an empty file (or comments only), more likely a slip than a wish for every default
+            raise ConfigError(f"config file {path} holds no settings: a config names at least its task ({WHERE_CONFIGS_ARE})")
         if not isinstance(values, dict):
             raise ConfigError(f"config file {path} must hold a mapping of settings, found {type(values).__name__}")
     fields = {f.name: f for f in dataclasses.fields(FinetuneConfig)}
