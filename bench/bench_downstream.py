@@ -258,7 +258,7 @@ def main() -> int:
     p.add_argument("--report", action="store_true", help="only print the table of what has run")
     p.add_argument("--runs", nargs="+", help="with --report: these run directories of LOGDIR instead of the planned ones")
     p.add_argument("--final-episodes", type=int, default=0,
-                   help="play every run's last checkpoint and the references again for this many episodes")
+                   help="play every run's last checkpoint, its best.pt and the references again for this many episodes")
     p.add_argument("--from-run", type=Path, metavar="RUNDIR",
                    help="a `hauwm finetune` run (e.g. bench_learning.py --gpu's) whose task, replay (the medium part) "
                         "and agent (the expert part and the demonstrations) make the datasets, for DMC and RoboDesk")
