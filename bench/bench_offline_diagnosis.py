@@ -11,7 +11,13 @@ run never saw), prints:
    recorded there: mean |a_π − a_data| and how often |a_π| ≥ 0.99;
 3. the penalty u (the run's `penalty`, finetune/penalty.py) of one imagined step from the same posterior
    states with the recorded actions and with the actor's: if u does not grow where the actor deviates,
-   eq. 6 cannot hold it near the data, whatever λ.
+   eq. 6 cannot hold it near the data, whatever λ;
+4. from each window's first posterior state, L − 1 steps imagined along the recorded actions and along the
+   actor's mode: the reward head's mean reward per step on each, beside the recorded one. A world model
+   that rates an actor that fails in the environment above the recorded (expert) actions is being
+   exploited: its reward head overestimates off the data.
+
+`--checkpoint best.pt` diagnoses the run's best evaluation's agent instead of its last.
 
 Needs the run's MINARI_DATASETS_PATH (bench_downstream: LOGDIR/minari).
 """
@@ -30,9 +36,35 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from finetune.config import load_config  # noqa: E402
 from finetune.offline import OfflineAgent  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
-from finetune.train import load_dataset, load_trained  # noqa: E402
+from finetune.train import BEST, CHECKPOINT, load_dataset, load_trained  # noqa: E402
+from finetune.world_model import Latent  # noqa: E402
 
 MODEL_METRICS = ("model_loss", "recon_nll", "reward_nll", "kl")
+
+
+class Fixed:
+    """What WorldModel.imagine asks of a policy (a distribution with rsample and entropy), for given actions."""
+
+    def __init__(self, action: torch.Tensor):
+        self.action = action  # [N, A]
+
+    def rsample(self) -> torch.Tensor:
+        return self.action
+
+    def entropy(self) -> torch.Tensor:
+        return torch.zeros(self.action.shape[0])
+
+
+def imagined_reward_per_step(agent: OfflineAgent, first: Latent, horizon: int,
+                             recorded: torch.Tensor | None = None) -> float:
+    """The reward head's mean over `horizon` steps imagined from `first` [B, 1, ·]: along the `recorded` actions
+    [B, horizon, A], or (None) along the actor's mode."""
+    steps = iter(recorded.unbind(1)) if recorded is not None else None
+
+    def policy(feat: torch.Tensor) -> Fixed:
+        return Fixed(next(steps) if steps is not None else agent.behavior.actor(feat).mode)
+
+    return float(agent.world_model.imagine(first, policy, horizon)[1].mean())
 
 
 def windows(dataset_id: str, cfg, action_dim: int, count: int, seed: int) -> list[dict[str, torch.Tensor]]:
@@ -60,6 +92,10 @@ def diagnose(agent: OfflineAgent, batches: list[dict[str, torch.Tensor]]) -> dic
         for name, actions in (("u_recorded_actions", recorded), ("u_actor_actions", actor)):
             agent.penalty.measure_dataset(start, actions)
             values[name] = float(agent.penalty.metrics["penalty_u_dataset"])
+        first, horizon = start.map(lambda x: x[:, :1]), recorded.shape[1] - 1
+        values["reward_recorded"] = float(batch["reward"][:, 1:].mean())
+        values["reward_imagined_recorded_actions"] = imagined_reward_per_step(agent, first, horizon, recorded[:, 1:])
+        values["reward_imagined_actor"] = imagined_reward_per_step(agent, first, horizon)
         for name, value in values.items():
             sums[name] = sums.get(name, 0.0) + value / len(batches)
     return sums
@@ -71,6 +107,7 @@ def main() -> int:
     p.add_argument("--pretrained", required=True, help="the export the run was trained on")
     p.add_argument("--heldout", default="bench/drawer_close-demos-v0", help="a dataset of the same task")
     p.add_argument("--batches", type=int, default=8)
+    p.add_argument("--checkpoint", default=CHECKPOINT, choices=[CHECKPOINT, BEST], help="the last checkpoint or best.pt")
     args = p.parse_args()
     torch.set_num_threads(1)
     cfg = load_config(args.run / "config.yaml", {"device": "cpu"})
@@ -81,15 +118,15 @@ def main() -> int:
     env = make_env(cfg.task, seed=cfg.seed, **cfg.env_settings)
     action_dim = env.action_space.shape[0]
     env.close()
-    cfg, agent, counters = load_trained(args.run, args.pretrained, action_dim)
-    print(f"{args.run} at {counters['updates']} updates: penalty {cfg.penalty}, λ {cfg.penalty_scale:g}; "
+    cfg, agent, counters = load_trained(args.run, args.pretrained, action_dim, checkpoint=args.checkpoint)
+    print(f"{args.run / args.checkpoint} at {counters['updates']} updates: penalty {cfg.penalty}, λ {cfg.penalty_scale:g}; "
           f"{args.batches} batches of {cfg.batch_size} × {cfg.seq_len} per dataset")
     results = {"training dataset": diagnose(agent, windows(cfg.dataset, cfg, action_dim, args.batches, 1)),
                "held-out": diagnose(agent, windows(args.heldout, cfg, action_dim, args.batches, 2))}
     names = list(next(iter(results.values())))
-    print(f"{'':<20}" + "".join(f"{name:>20}" for name in results))
+    print(f"{'':<34}" + "".join(f"{name:>20}" for name in results))
     for name in names:
-        print(f"{name:<20}" + "".join(f"{values[name]:>20.3f}" for values in results.values()))
+        print(f"{name:<34}" + "".join(f"{values[name]:>20.3f}" for values in results.values()))
     return 0
 
 
