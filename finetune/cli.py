@@ -16,6 +16,7 @@ environment's reward (docs/downstream.md). Running again with the same --logdir 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import sys
 import time
@@ -60,8 +61,8 @@ def evaluate_parser() -> argparse.ArgumentParser:
     p.add_argument("--pretrained", help="the export the run was trained on (not needed for agent=scratch runs)")
     p.add_argument("--best", action="store_true", help="play best.pt (the run's best evaluation) instead of its last checkpoint")
     p.add_argument("--episodes", type=int, help="episodes to play (default: the run's eval_episodes)")
-    p.add_argument("--seed", type=int, help="env seed of the first episode (default: the run's seed + 20,000, "
-                                             "placements its evaluations during training did not use)")
+    p.add_argument("--seed", type=int, help="env seed of the first episode (default: the run's seed + 10^9, which no "
+                                             "training episode or evaluation of the run used)")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
     return p
@@ -71,25 +72,27 @@ def evaluate_run(argv: list[str]) -> int:
     """`hauwm finetune evaluate`: one line with the run's agent's returns over --episodes fresh episodes."""
     from finetune.datasets.sources import DatasetError, run_config
     from finetune.pretrained import PretrainedError
-    from finetune.train import BEST, CHECKPOINT, FinetuneError, evaluate, load_trained, resolve_device, task_env
+    from finetune.train import (BEST, CHECKPOINT, HELD_OUT_SEED, FinetuneError, evaluate, load_trained, resolve_device,
+                                task_env)
 
     args = evaluate_parser().parse_args(argv)
     try:
         cfg = run_config(args.rundir)
         episodes = cfg.eval_episodes if args.episodes is None else args.episodes
-        seed = cfg.seed + 20_000 if args.seed is None else args.seed
-        if episodes < 1 or seed < 0:
-            raise FinetuneError(f"--episodes must be >= 1 and --seed >= 0, got {episodes} and {seed}")
-        env = task_env(cfg, seed)
+        seed = cfg.seed + HELD_OUT_SEED if args.seed is None else args.seed
+        if episodes < 1:
+            raise FinetuneError(f"--episodes must be >= 1, got {episodes}")
+        if not 0 <= seed < 2**32:
+            raise FinetuneError(f"the env seed must lie in 0..2^32-1, got {seed}: pass --seed")
         if cfg.agent == "hauwm" and args.pretrained is None:
             raise FinetuneError(f"{args.rundir} trained agent 'hauwm' on a frozen export: pass that export with "
                                 "--pretrained DIR (its sha256 is checked)")
         checkpoint = BEST if args.best else CHECKPOINT
         pretrained = args.pretrained if cfg.agent == "hauwm" else None
-        cfg, agent, counters = load_trained(args.rundir, pretrained, env.action_space.shape[0],
-                                            resolve_device(args.device), checkpoint)
-        result = evaluate(agent, env, episodes, cfg.task, seed=seed, progress=not args.no_progress)
-        env.close()
+        with contextlib.closing(task_env(cfg, seed)) as env:
+            cfg, agent, counters = load_trained(args.rundir, pretrained, env.action_space.shape[0],
+                                                resolve_device(args.device), checkpoint)
+            result = evaluate(agent, env, episodes, cfg.task, seed=seed, progress=not args.no_progress)
     except (DatasetError, FinetuneError, PretrainedError) as error:
         print(f"hauwm finetune evaluate: error: {error}", file=sys.stderr)
         return 2

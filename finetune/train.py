@@ -39,6 +39,9 @@ CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"  # the agent at its best evaluation so far (keep_best)
 LOCK = ".lock"
 ENV_SEED_STRIDE = 1_000_000  # env i of a run starts from seed + i · this (env 0: the seed a single env gets)
+HELD_OUT_SEED = 1_000_000_000  # `hauwm finetune evaluate` plays from the run's seed + this: an env seed none of
+#                                the run's training episodes (seed + episodes + i · ENV_SEED_STRIDE) or
+#                                evaluations (seed + 10,000 + step) reaches
 
 
 class FinetuneError(RuntimeError):

@@ -77,12 +77,13 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert main(evaluate) == 0 and main(evaluate) == 0
     first, again = capsys.readouterr().out.splitlines()
     assert first == again and first.startswith(f"dmc_cartpole_swingup (hauwm, online) {logdir / CHECKPOINT} at env "
-                                               "step 280, 2 episodes from env seed 20000: return ")
+                                               "step 280, 2 episodes from env seed 1000000000: return ")
     assert main(evaluate + ["--best", "--seed", "7"]) == 0
     assert f"{logdir / BEST} at env step {best['best_at']}, 2 episodes from env seed 7" in capsys.readouterr().out
     assert main(evaluate[:2] + ["--episodes", "1"]) == 2 and "pass that export with --pretrained DIR" in capsys.readouterr().err
     assert main(["evaluate", str(tmp_path)]) == 2 and "not a `hauwm finetune` run directory" in capsys.readouterr().err
     assert main(evaluate + ["--episodes", "0"]) == 2 and "--episodes must be >= 1" in capsys.readouterr().err
+    assert main(evaluate + ["--seed", "-1"]) == 2 and "env seed must lie in 0..2^32-1" in capsys.readouterr().err
 
 
 def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes, tmp_path, capsys):
