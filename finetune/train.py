@@ -177,8 +177,8 @@ def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
     logdir = Path(logdir)
     for name in ("config.yaml", checkpoint):
         if not (logdir / name).is_file():
-            why = ("no evaluation has been kept (a run writes best.pt at its evaluations; older versions did not)" if name == BEST
-                   else "not a run directory, or a run that has not checkpointed yet")
+            why = ("no evaluation has been kept (a run writes best.pt at its evaluations; older versions did not)"
+                   if name == BEST else "not a run directory, or a run that has not checkpointed yet")
             raise FinetuneError(f"{logdir} holds no {name}: {why}")
     written = yaml.safe_load((logdir / "config.yaml").read_text())
     before = settings_before_they_existed(written.get("paradigm", "online"))
