@@ -157,13 +157,18 @@ def best_kept(logdir: Path, unit: str) -> str:
     """Which evaluation the run's best.pt is of, e.g. 'best evaluation: return 1.3 at update 750, its agent in …'."""
     import torch
 
-    from finetune.train import BEST
+    from finetune.train import BEST, CHECKPOINT
+    from model.export import torch_load_failure
 
     if not (logdir / BEST).is_file():
         return "no evaluation has been kept (best.pt is written at evaluations)"
-    counters = torch.load(logdir / BEST, map_location="cpu", weights_only=True, mmap=True)["counters"]
-    return (f"best evaluation: return {counters['best_return']:.4g} at {unit} {counters['best_at']}, its agent in "
-            f"{logdir / BEST}")
+    try:
+        counters = torch.load(logdir / BEST, map_location="cpu", weights_only=True, mmap=True)["counters"]
+        best_return, best_at = counters["best_return"], counters["best_at"]
+    except Exception as err:  # damaged or replaced since the run wrote it: say so; the run itself is done
+        why = f"it lacks {err}" if isinstance(err, KeyError) else torch_load_failure(err)
+        return f"{logdir / BEST} cannot be read ({why}); the run's {logdir / CHECKPOINT} is not affected"
+    return f"best evaluation: return {best_return:.4g} at {unit} {best_at}, its agent in {logdir / BEST}"
 
 
 def last_evaluation(logdir: Path) -> str:

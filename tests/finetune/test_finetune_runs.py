@@ -85,6 +85,10 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert main(evaluate + ["--episodes", "0"]) == 2 and "--episodes must be >= 1" in capsys.readouterr().err
     assert main(evaluate + ["--seed", "-1"]) == 2 and "env seed must lie in 0..2^32-1" in capsys.readouterr().err
 
+    (logdir / BEST).write_bytes((logdir / BEST).read_bytes()[:100])  # damaged after the run: named, not a traceback
+    assert main(args + ["--steps", "200"]) == 0
+    assert f"{logdir / BEST} cannot be read (it is truncated" in capsys.readouterr().out
+
 
 def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes, tmp_path, capsys):
     logdir = tmp_path / "run"
