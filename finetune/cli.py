@@ -70,10 +70,9 @@ def evaluate_parser() -> argparse.ArgumentParser:
 
 def evaluate_run(argv: list[str]) -> int:
     """`hauwm finetune evaluate`: one line with the run's agent's returns over --episodes fresh episodes."""
-    from finetune.datasets.sources import DatasetError, run_config
     from finetune.pretrained import PretrainedError
     from finetune.train import (BEST, CHECKPOINT, HELD_OUT_SEED, FinetuneError, evaluate, load_trained, resolve_device,
-                                task_env)
+                                run_config, task_env)
 
     args = evaluate_parser().parse_args(argv)
     try:
@@ -93,7 +92,7 @@ def evaluate_run(argv: list[str]) -> int:
             cfg, agent, counters = load_trained(args.rundir, pretrained, env.action_space.shape[0],
                                                 resolve_device(args.device), checkpoint)
             result = evaluate(agent, env, episodes, cfg.task, seed=seed, progress=not args.no_progress)
-    except (DatasetError, FinetuneError, PretrainedError) as error:
+    except (FinetuneError, PretrainedError) as error:
         print(f"hauwm finetune evaluate: error: {error}", file=sys.stderr)
         return 2
     at = f"update {counters['updates']}" if cfg.paradigm == "offline" else f"env step {counters['env_step']}"

@@ -29,7 +29,7 @@ import yaml
 from tqdm import tqdm
 
 from finetune.agent import Agent, resolve_compile
-from finetune.config import FinetuneConfig
+from finetune.config import ConfigError, FinetuneConfig, load_config
 from finetune.logger import Logger
 from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
@@ -164,13 +164,32 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
     return dict(state["counters"])
 
 
+def run_config(logdir: str | Path, overrides: dict[str, object] | None = None) -> FinetuneConfig:
+    """The FinetuneConfig a `hauwm finetune` run wrote to LOGDIR/config.yaml, with `overrides` and, for the settings
+    the run predates, the values it ran with (settings_before_they_existed); a FinetuneError if there is none or
+    it cannot be read."""
+    path = Path(logdir) / "config.yaml"
+    if not path.is_file():
+        raise FinetuneError(f"{logdir} is not a `hauwm finetune` run directory (no config.yaml)")
+    try:
+        written = yaml.safe_load(path.read_text())
+    except yaml.YAMLError:
+        written = None  # load_config below says what is wrong with the file
+    written = written if isinstance(written, dict) else {}
+    before = settings_before_they_existed(str(written.get("paradigm", "online")))
+    older = {key: value for key, value in before.items() if key not in written}  # an older run's values
+    try:
+        return load_config(path, {**older, **(overrides or {})})
+    except ConfigError as error:
+        raise FinetuneError(f"{path}: {error}") from None
+
+
 def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
                  device: torch.device = torch.device("cpu"), checkpoint: str = CHECKPOINT
                  ) -> tuple[FinetuneConfig, Agent, dict[str, float]]:
     """A run's agent (online, offline or imitation, as its config says) as its `checkpoint` (the last one, or
     BEST) left it, in eval mode: (the run's config, the agent, its counters then); to play it (datasets) and
     for benches and diagnoses."""
-    from finetune.config import load_config
     from finetune.imitation import ImitationAgent
     from finetune.offline import OfflineAgent
 
@@ -180,10 +199,7 @@ def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
             why = ("no evaluation has been kept (a run writes best.pt at its evaluations; older versions did not)"
                    if name == BEST else "not a run directory, or a run that has not checkpointed yet")
             raise FinetuneError(f"{logdir} holds no {name}: {why}")
-    written = yaml.safe_load((logdir / "config.yaml").read_text())
-    before = settings_before_they_existed(written.get("paradigm", "online"))
-    overrides = {key: value for key, value in before.items() if key not in written}  # an older run's values
-    cfg = load_config(logdir / "config.yaml", {**overrides, "device": str(device)})
+    cfg = run_config(logdir, {"device": str(device)})
     agent_class = {"online": Agent, "offline": OfflineAgent, "imitation": ImitationAgent}[cfg.paradigm]
     hauwm = pretrained if cfg.agent == "hauwm" else None
     agent = build_agent(cfg, action_dim, hauwm, device, agent_class)

@@ -82,16 +82,14 @@ def load_agent_policy(rundir: str | Path, pretrained: str | Path | None, device:
 
 
 def run_config(rundir: str | Path):
-    """The FinetuneConfig a `hauwm finetune` run wrote to RUNDIR/config.yaml."""
-    from finetune.config import ConfigError, load_config
+    """The FinetuneConfig a `hauwm finetune` run wrote to RUNDIR/config.yaml (finetune.train.run_config)."""
+    from finetune.train import FinetuneError
+    from finetune.train import run_config as read_run_config
 
-    path = Path(rundir) / "config.yaml"
-    if not path.is_file():
-        raise DatasetError(f"{rundir} is not a `hauwm finetune` run directory (no config.yaml)")
     try:
-        return load_config(path)
-    except ConfigError as error:
-        raise DatasetError(f"{path}: {error}") from None
+        return read_run_config(rundir)
+    except FinetuneError as error:
+        raise DatasetError(str(error)) from None
 
 
 def policy_episodes(env, policy: Policy, episodes: int) -> Iterator[dict[str, np.ndarray]]:
