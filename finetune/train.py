@@ -137,13 +137,14 @@ def settings_before_they_existed(paradigm: str) -> dict[str, object]:
     return before
 
 
-def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
-                    rng: np.random.Generator | None = None) -> dict[str, float]:
+def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str, device: torch.device,
+               remedy: str = "restore it, or train in another --logdir") -> dict:
+    """What save_checkpoint wrote to `path` (checkpoint.pt or best.pt), checked to be of this run: the same export
+    and the settings that shape the agent; a FinetuneError naming the file (and `remedy` if it cannot be read)."""
     try:
-        state = torch.load(path, map_location=agent.device, weights_only=True)
+        state = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:
-        raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): restore it, or train in another "
-                            "--logdir") from None
+        raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): {remedy}") from None
     if state["export_sha256"] != fingerprint:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the same export or use another --logdir")
@@ -153,6 +154,13 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
         if written != getattr(cfg, key):
             raise FinetuneError(f"{path} was written by a run with {key}={written!r}, this run has "
                                 f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
+    return state
+
+
+def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
+                    rng: np.random.Generator | None = None) -> dict[str, float]:
+    """Restore `agent` (weights, optimizers), torch's and `rng`'s states from `path`; -> its counters."""
+    state = read_state(path, cfg, fingerprint, agent.device)
     missing, unexpected = agent.load_state_dict(state["agent"], strict=False)
     missing = [k for k in missing if not k.startswith("world_model.frozen.")]
     if missing or unexpected:
@@ -310,8 +318,9 @@ def task_env(cfg: FinetuneConfig, seed: int):
 def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: type[Agent], action_dim: int,
               counters: dict[str, float], rng: np.random.Generator) -> tuple[Agent, str, dict[str, float]]:
     """The start every paradigm shares: torch's threads and seed, the agent, and the run directory's checkpoint
-    if there is one (it restores the agent, `rng` and the counters; a fresh run keeps `counters`); config.yaml
-    written. -> (agent, the export's fingerprint, counters)."""
+    if there is one (it restores the agent, `rng` and the counters; a fresh run keeps `counters`), the best return
+    best.pt holds if it is higher than the counters', and config.yaml written. -> (agent, the export's fingerprint,
+    counters)."""
     device = resolve_device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -321,6 +330,13 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
     checkpoint = Path(cfg.logdir) / CHECKPOINT
     if checkpoint.exists():
         counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng)
+    best = Path(cfg.logdir) / BEST
+    if best.exists():  # a run stopped between keeping an evaluation and its next checkpoint: its best.pt is better
+        #                than the checkpoint's counters know, and a worse evaluation must not replace it on resume
+        kept = read_state(best, cfg, fingerprint, torch.device("cpu"), remedy="restore it, or move it away to go on "
+                          "without it (the run then keeps its next best evaluation)")["counters"]
+        if kept.get("best_return", -np.inf) > counters.get("best_return", -np.inf):
+            counters.update(best_return=kept["best_return"], best_at=kept["best_at"])
     (Path(cfg.logdir) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
     return agent, fingerprint, counters
 

@@ -7,7 +7,7 @@ import csv
 import pytest
 import torch
 
-from finetune.cli import main
+from finetune.cli import best_kept, main
 from finetune.config import load_config
 from finetune.train import BEST, CHECKPOINT, build_agent, exclusive, export_fingerprint, load_checkpoint, train
 from model.export import export_frozen
@@ -85,9 +85,23 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert main(evaluate + ["--episodes", "0"]) == 2 and "--episodes must be >= 1" in capsys.readouterr().err
     assert main(evaluate + ["--seed", "-1"]) == 2 and "env seed must lie in 0..2^32-1" in capsys.readouterr().err
 
-    (logdir / BEST).write_bytes((logdir / BEST).read_bytes()[:100])  # damaged after the run: named, not a traceback
-    assert main(args + ["--steps", "200"]) == 0
-    assert f"{logdir / BEST} cannot be read (it is truncated" in capsys.readouterr().out
+    # stopped between keeping an evaluation and the next checkpoint: the resumed run does not replace that best.pt
+    # with a worse evaluation (here best.pt holds a return none reaches, and the checkpoint knows no best)
+    kept = torch.load(logdir / BEST, weights_only=True)
+    kept["counters"]["best_return"] = 1e9
+    torch.save(kept, logdir / BEST)
+    older = torch.load(logdir / CHECKPOINT, weights_only=True)
+    del older["counters"]["best_return"], older["counters"]["best_at"]
+    torch.save(older, logdir / CHECKPOINT)
+    kept_bytes = (logdir / BEST).read_bytes()
+    assert main(args + ["--steps", "320"]) == 0
+    assert (logdir / BEST).read_bytes() == kept_bytes
+    assert torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]["best_return"] == 1e9
+
+    (logdir / BEST).write_bytes(kept_bytes[:100])  # damaged: named, not a traceback, at resume and after a run
+    assert main(args + ["--steps", "360"]) == 2
+    assert f"{logdir / BEST} cannot be read (it is truncated" in (err := capsys.readouterr().err) and "move it away" in err
+    assert f"{logdir / BEST} cannot be read (it is truncated" in best_kept(logdir, "env step")
 
 
 def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes, tmp_path, capsys):
