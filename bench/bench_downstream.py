@@ -191,6 +191,7 @@ def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[flo
 
 def final_report(args: argparse.Namespace, names: list[str]) -> None:
     """Each run's last and best checkpoints and both references, --final-episodes episodes each from one env seed."""
+    from finetune.config import step_unit
     from finetune.envs import make_env
     from finetune.train import BEST, CHECKPOINT, evaluate, load_trained
 
@@ -219,7 +220,8 @@ def final_report(args: argparse.Namespace, names: list[str]) -> None:
                 continue
             env = make_env(args.task, seed=seed, **args.env)
             cfg, agent, counters = load_trained(logdir, args.pretrained, env.action_space.shape[0], checkpoint=checkpoint)
-            at = f"u{counters['updates']}" if cfg.paradigm == "offline" else f"e{counters['env_step']}"
+            unit, key = step_unit(cfg.paradigm)
+            at = f"{unit[0]}{counters[key]}"  # u750: update 750, e12000: env step 12,000
             if at not in played:  # best.pt of the last evaluation is the last checkpoint
                 result = evaluate(agent, env, episodes, args.task, seed=seed)
                 row(name + ("*" if checkpoint == BEST else ""), at, result["return"], result["return_std"],

@@ -22,6 +22,8 @@ import sys
 import time
 from pathlib import Path
 
+from finetune.config import step_unit
+
 # subcommand -> (paradigm, its data flag, the config setting that flag fills, help)
 SUBCOMMANDS = {
     "offline": ("offline", "--dataset", "dataset", "offline RL from a fixed dataset (LOMPO-style, eq. 6)"),
@@ -43,8 +45,8 @@ def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
         _, flag, setting, _ = SUBCOMMANDS[subcommand]
         p.add_argument(flag, dest=setting, metavar="ID", help="dataset id for finetune.datasets (a dataset written by "
                                                                f"`hauwm datasets collect`); overrides the config's {setting}")
-    budget = "update budget (overrides the config)" if subcommand == "offline" else "env-step budget (overrides the config)"
-    p.add_argument("--steps", type=int, help=budget)
+    unit, _ = step_unit(SUBCOMMANDS[subcommand][0] if subcommand else "online")
+    p.add_argument("--steps", type=int, help=f"{unit} budget (overrides the config)")
     p.add_argument("--logdir", help="run directory: logs, checkpoint, replay (overrides the config)")
     p.add_argument("--seed", type=int)
     p.add_argument("--device", help="auto, cpu or cuda")
@@ -95,9 +97,9 @@ def evaluate_run(argv: list[str]) -> int:
     except (FinetuneError, PretrainedError) as error:
         print(f"hauwm finetune evaluate: error: {error}", file=sys.stderr)
         return 2
-    at = f"update {counters['updates']}" if cfg.paradigm == "offline" else f"env step {counters['env_step']}"
-    print(f"{cfg.task} ({cfg.agent}, {cfg.paradigm}) {args.rundir / checkpoint} at {at}, {episodes} episodes from env "
-          f"seed {seed}: " + ", ".join(f"{k} {v:.4g}" for k, v in result.items()))
+    unit, key = step_unit(cfg.paradigm)
+    print(f"{cfg.task} ({cfg.agent}, {cfg.paradigm}) {args.rundir / checkpoint} at {unit} {counters[key]}, {episodes} "
+          f"episodes from env seed {seed}: " + ", ".join(f"{k} {v:.4g}" for k, v in result.items()))
     return 0
 
 
@@ -142,13 +144,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{parser(subcommand).prog}: interrupted; {kept}", file=sys.stderr)
         return 130
     kind = cfg.agent if paradigm == "online" else f"{cfg.agent}, {paradigm}"
+    unit, _ = step_unit(paradigm)
     if result:
         print(f"finished {cfg.task} ({kind}) in {cfg.logdir}: " + ", ".join(f"{k} {v:.4g}" for k, v in result.items()))
     else:  # every run ends with an evaluation, so this one had nothing left to do
-        unit = "updates" if paradigm == "offline" else "env steps"
-        print(f"nothing to train: {cfg.logdir} has already run its budget of {cfg.steps} {unit} (a larger --steps "
+        print(f"nothing to train: {cfg.logdir} has already run its budget of {cfg.steps} {unit}s (a larger --steps "
               f"goes on from its checkpoint); {last_evaluation(Path(cfg.logdir))}")
-    print(best_kept(Path(cfg.logdir), "update" if paradigm == "offline" else "env step"))
+    print(best_kept(Path(cfg.logdir), unit))
     return 0
 
 
