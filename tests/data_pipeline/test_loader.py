@@ -149,7 +149,7 @@ def test_worker_priority_sets_the_workers_scheduling_class(built_shards, priorit
     loader = make_dataloader(dataset, worker_priority=priority)
     before = frozenset(worker_pids())
     batches = iter(loader)
-    next(batches)  # the workers have run their init
+    next(batches), next(batches)  # a batch from each worker (round robin): both have run their init
     workers = worker_pids(before)
     assert len(workers) == 2
     assert {os.sched_getscheduler(pid) for pid in workers} == {getattr(os, scheduler)}
