@@ -85,9 +85,6 @@ def evaluate_run(argv: list[str]) -> int:
             raise FinetuneError(f"--episodes must be >= 1, got {episodes}")
         if not 0 <= seed < 2**32:
             raise FinetuneError(f"the env seed must lie in 0..2^32-1, got {seed}: pass --seed")
-        if cfg.agent == "hauwm" and args.pretrained is None:
-            raise FinetuneError(f"{args.rundir} trained agent 'hauwm' on a frozen export: pass that export with "
-                                "--pretrained DIR (its sha256 is checked)")
         checkpoint = BEST if args.best else CHECKPOINT
         pretrained = args.pretrained if cfg.agent == "hauwm" else None
         with contextlib.closing(task_env(cfg, seed)) as env:

@@ -54,11 +54,16 @@ def next_multiple(step: int, every: int) -> int:
 
 
 def resolve_device(name: str) -> torch.device:
+    """The torch device of a --device flag or `device` setting: auto (CUDA if visible), cpu, cuda or cuda:N."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
+    try:
+        device = torch.device(name)
+    except RuntimeError:  # torch's own message lists every backend it knows
+        raise FinetuneError(f"device {name!r} is not a device: use auto, cpu, cuda or cuda:N") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
         raise FinetuneError(f"device {name!r} asked for but no CUDA device is visible; use --device cpu")
-    return torch.device(name)
+    return device
 
 
 def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | None, device: torch.device,
@@ -145,15 +150,15 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str, device: torch.
         state = torch.load(path, map_location=device, weights_only=True)
     except Exception as err:
         raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): {remedy}") from None
-    if state["export_sha256"] != fingerprint:
-        raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
-                            "pass the same export or use another --logdir")
     before = settings_before_they_existed(cfg.paradigm)
     for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm", *before):
         written = state["config"].get(key, before.get(key))  # .get: a checkpoint older than the setting
         if written != getattr(cfg, key):
             raise FinetuneError(f"{path} was written by a run with {key}={written!r}, this run has "
                                 f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
+    if state["export_sha256"] != fingerprint:
+        raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
+                            "pass the same export or use another --logdir")
     return state
 
 
@@ -208,6 +213,9 @@ def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
                    if name == BEST else "not a run directory, or a run that has not checkpointed yet")
             raise FinetuneError(f"{logdir} holds no {name}: {why}")
     cfg = run_config(logdir, {"device": str(device)})
+    if cfg.agent == "hauwm" and pretrained is None:
+        raise FinetuneError(f"{logdir} trained agent 'hauwm' on a frozen export: pass that export with --pretrained "
+                            "DIR (its sha256 is checked)")
     agent_class = {"online": Agent, "offline": OfflineAgent, "imitation": ImitationAgent}[cfg.paradigm]
     hauwm = pretrained if cfg.agent == "hauwm" else None
     agent = build_agent(cfg, action_dim, hauwm, device, agent_class)
@@ -347,9 +355,17 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
 
     logdir = Path(cfg.logdir)
     probe = task_env(cfg, cfg.seed)
-    action_dim = probe.action_space.shape[0]
+    action_dim, episode_entries = probe.action_space.shape[0], probe.time_limit + 1  # o_0 and one per agent step
     probe.close()
+    if cfg.seq_len > episode_entries:
+        raise FinetuneError(f"seq_len = {cfg.seq_len} is longer than an episode of {cfg.task} ({episode_entries} "
+                            f"frames at time_limit {probe.time_limit}): no update could ever train; lower seq_len "
+                            "or raise time_limit")
     rng = np.random.default_rng([cfg.seed, 0])  # the replay's sampler; a checkpoint restores its state
+    if hooks.make_replay is None:
+        replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
+    else:  # before start_run: a dataset refused must leave the run directory's config.yaml as it was
+        replay = hooks.make_replay(cfg, logdir / "replay", rng, action_dim)
     counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
                 "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
     agent, fingerprint, counters = start_run(cfg, pretrained, hooks.agent_class, action_dim, counters, rng)
@@ -360,10 +376,6 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     progress_seed = 0 if hooks.reseed else counters["episodes"]
     seeds = [cfg.seed + progress_seed + ENV_SEED_STRIDE * i for i in range(cfg.num_envs)]
     eval_env = task_env(cfg, cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]))
-    if hooks.make_replay is None:
-        replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
-    else:
-        replay = hooks.make_replay(cfg, logdir / "replay", rng, action_dim)
     replay.load()
     logger = Logger(logdir)
     with contextlib.closing(make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)) as envs:

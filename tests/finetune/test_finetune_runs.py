@@ -9,7 +9,8 @@ import torch
 
 from finetune.cli import best_kept, main
 from finetune.config import load_config
-from finetune.train import BEST, CHECKPOINT, build_agent, exclusive, export_fingerprint, load_checkpoint, train
+from finetune.train import (BEST, CHECKPOINT, FinetuneError, build_agent, exclusive, export_fingerprint, load_checkpoint,
+                            resolve_device, train)
 from model.export import export_frozen
 from model.world_model import WorldModel
 
@@ -111,6 +112,8 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     assert main(run + ["--pretrained", str(export_dir)]) == 0
     code = main(run + ["--pretrained", str(export_dir), "--set", "task=dmc_cheetah_run"])
     assert code == 2 and "task='dmc_cartpole_swingup'" in capsys.readouterr().err
+    assert main(run + ["--set", "agent=scratch"]) == 2  # named as the agent it is, not as another export
+    assert "agent='hauwm', this run has agent='scratch'" in capsys.readouterr().err
     torch.manual_seed(1)
     other = export_frozen(WorldModel(export_sizes), tmp_path / "other-export")
     assert main(run + ["--pretrained", str(other)]) == 2
@@ -120,6 +123,12 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     assert main(run + ["--pretrained", str(export_dir)]) == 2
     err = capsys.readouterr().err
     assert f"{checkpoint} cannot be read (it is truncated or not a checkpoint" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("device", ["gpu", "GPU", "cuda:x"])
+def test_a_device_torch_does_not_know_is_refused_by_name(device):
+    with pytest.raises(FinetuneError, match=f"device '{device}' is not a device: use auto, cpu, cuda or cuda:N"):
+        resolve_device(device)
 
 
 def test_a_run_directory_in_use_is_refused(export_dir, tmp_path, capsys):

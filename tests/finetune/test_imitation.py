@@ -149,9 +149,22 @@ def test_bad_imitation_settings_are_refused_with_clear_errors(export_dir, tiny_c
     with pytest.raises(FinetuneError, match="--demos ID is needed"):
         train_imitation(imitation_config(tiny_config, tmp_path / "a", 16, demos=None), export_dir, progress=False)
     with pytest.raises(FinetuneError, match="no demonstration holds seq_len = 20"):
-        train_imitation(imitation_config(tiny_config, tmp_path / "b", 16, seq_len=20), export_dir, progress=False)
+        train_imitation(imitation_config(tiny_config, tmp_path / "b", 16, seq_len=20, time_limit=30), export_dir,
+                        progress=False)
+    with pytest.raises(FinetuneError, match=r"seq_len = 12 is longer than an episode of metaworld_drawer_close \(9 "
+                                            r"frames at time_limit 8\): no update could ever train"):
+        train_imitation(imitation_config(tiny_config, tmp_path / "d", 16, seq_len=12), export_dir, progress=False)
     with pytest.raises(FinetuneError, match="paradigm 'imitation'"):
         train_imitation(tiny_config(logdir=str(tmp_path / "c")), export_dir, progress=False)
+
+
+def test_a_refused_dataset_leaves_the_run_directory_as_it_was(export_dir, tiny_config, tmp_path, two_demos):
+    train_imitation(imitation_config(tiny_config, tmp_path / "run", 16), export_dir, progress=False)
+    written = (tmp_path / "run" / "config.yaml").read_text()
+    with pytest.raises(FinetuneError, match="--demos test/missing-v0"):
+        train_imitation(imitation_config(tiny_config, tmp_path / "run", 32, demos="test/missing-v0"), export_dir,
+                        progress=False)
+    assert (tmp_path / "run" / "config.yaml").read_text() == written
 
 
 def test_with_parallel_envs_every_episode_starts_from_its_own_seed(export_dir, tiny_config, tmp_path, two_demos):
