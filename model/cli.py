@@ -71,7 +71,8 @@ def not_an_advert(record: logging.LogRecord) -> bool:
 
 
 def lightning_cli(args: list[str]):
-    """Run a LightningCLI subcommand over PretrainModule and the shard DataModule."""
+    """Run a LightningCLI subcommand over PretrainModule and the shard DataModule; -> the LightningCLI. Ctrl-C during
+    a fit raises FitInterrupted, once ResumeNotice has said where to resume from."""
     refuse_flat_sizes(args)
     from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
     from lightning.pytorch.cli import LightningCLI
@@ -79,8 +80,11 @@ def lightning_cli(args: list[str]):
     from data_pipeline.datamodule import ShardDataModule
     from model.config import WorldModelConfig
     from model.export import read_checkpoint
+    from model.interrupt import FitInterrupted, ResumeNotice
     from model.module import ConfigError, PretrainModule, refuse_other_size
     from model.progress import StepProgressBar
+
+    notice = ResumeNotice()
 
     class PretrainCLI(LightningCLI):
         def add_arguments_to_parser(self, parser) -> None:
@@ -129,6 +133,7 @@ def lightning_cli(args: list[str]):
             for index, callback in enumerate(callbacks):  # Lightning's own default bar; a user's choice stays
                 if type(callback) in (RichProgressBar, TQDMProgressBar):
                     callbacks[index] = StepProgressBar()
+            callbacks.append(notice)  # with or without a progress bar
 
     # `hauwm` passes its own argv on purpose; Lightning would warn that sys.argv differs
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
@@ -140,14 +145,19 @@ def lightning_cli(args: list[str]):
     # Lightning 2.6's own pytree helper uses a torch API that torch 2.14 deprecates (not this project's code)
     warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated")
     logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(not_an_advert)  # once, however often called
-    return PretrainCLI(
-        PretrainModule,
-        ShardDataModule,
-        args=args,
-        save_config_kwargs={"overwrite": True},
-        parser_kwargs={"prog": "hauwm pretrain",
-                       "description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video shards."},
-    )
+    try:
+        return PretrainCLI(
+            PretrainModule,
+            ShardDataModule,
+            args=args,
+            save_config_kwargs={"overwrite": True},
+            parser_kwargs={"prog": "hauwm pretrain",
+                           "description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video shards."},
+        )
+    except SystemExit:
+        if notice.interrupted:  # Lightning's sys.exit(1) after Ctrl-C
+            raise FitInterrupted from None
+        raise
 
 
 def export_command(argv: list[str]) -> int:
@@ -207,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     from data_pipeline.loader import LoaderError
     from data_pipeline.shard_format import ShardDirError
     from model.export import ExportError
+    from model.interrupt import FitInterrupted
     from model.module import ConfigError
 
     command = argv[0]
@@ -221,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ExportError, LoaderError, ShardDirError) as err:
         print(f"hauwm pretrain {command}: error: {err}", file=sys.stderr)
         return 2
+    except FitInterrupted:  # ResumeNotice has said where the fit can resume from
+        return 130
     except SystemExit as done:  # --help, --print_config, or a flag the parser refused (it printed why)
         return done.code if isinstance(done.code, int) else 2
     print(f"hauwm pretrain: unknown command {command!r}\nusage:\n{USAGE}", file=sys.stderr)

@@ -6,14 +6,10 @@ set a handful (240 clips: 7), with the epoch count shown as `Epoch 33/-2` when o
 runs once from the run's (or the resumed checkpoint's) step to `trainer.max_steps`, so its rate is steps/s and its
 time left is the fit's; the description names the current epoch, the postfix the loss of the last logging step.
 Validation keeps Lightning's own bar. `hauwm pretrain fit` puts it in place of Lightning's default bar.
-On Ctrl-C, which Lightning ends without saving, its last line names the checkpoint the fit can resume from.
 """
 
 from __future__ import annotations
 
-import sys
-import time
-from pathlib import Path
 from typing import Any
 
 import lightning
@@ -56,16 +52,3 @@ class StepProgressBar(TQDMProgressBar):
         if self._loss is not None:
             metrics["loss"] = f"{self._loss[1]:.4g}"
         return metrics
-
-    def on_exception(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule,
-                     exception: BaseException) -> None:
-        if not (isinstance(exception, KeyboardInterrupt) and trainer.is_global_zero):
-            return
-        checkpoint = trainer.checkpoint_callback
-        last = Path(checkpoint.last_model_path or checkpoint.best_model_path) if checkpoint else Path()
-        where = "no checkpoint was written yet"  # Path() is ".", never a file
-        if last.is_file():
-            where = f"resume with --ckpt_path {last} (written {time.strftime('%H:%M:%S', time.localtime(last.stat().st_mtime))})"
-        if self._train_progress_bar is not None:  # None when stopped before training began (sanity check)
-            self._train_progress_bar.close()
-        print(f"hauwm pretrain fit: interrupted at step {trainer.global_step}; {where}", file=sys.stderr)

@@ -67,28 +67,3 @@ def test_the_cli_shows_steps_of_the_whole_fit(built_shards, tmp_path, capsys):
                "--trainer.val_check_interval", "4", "--trainer.log_every_n_steps", "2") == 0
     shown = capsys.readouterr().out.replace("\r", "\n").splitlines()
     assert any("4/4" in line and "step/s" in line and "loss=" in line for line in shown), shown[-5:]
-
-
-class Interrupted(Regression):
-    """Ctrl-C after `at` optimizer steps."""
-
-    def __init__(self, at: int) -> None:
-        super().__init__()
-        self.at = at
-
-    def on_train_batch_start(self, batch: torch.Tensor, batch_idx: int) -> None:
-        if self.trainer.global_step == self.at:
-            raise KeyboardInterrupt
-
-
-def test_ctrl_c_names_the_checkpoint_to_resume_from(tmp_path, capsys):
-    checkpoints = lightning.pytorch.callbacks.ModelCheckpoint(tmp_path / "checkpoints", save_last=True,
-                                                              every_n_train_steps=2)
-    trainer = lightning.Trainer(max_steps=10, accelerator="cpu", logger=False, enable_model_summary=False,
-                                callbacks=[StepProgressBar(), checkpoints])
-    try:  # Lightning stops a fit on Ctrl-C with sys.exit(1), without a checkpoint of its own
-        trainer.fit(Interrupted(at=5))
-    except SystemExit as exit_:
-        assert exit_.code == 1
-    err = capsys.readouterr().err
-    assert f"interrupted at step 5; resume with --ckpt_path {tmp_path / 'checkpoints' / 'last.ckpt'} (written " in err

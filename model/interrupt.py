@@ -1,0 +1,42 @@
+"""`ResumeNotice`: what `hauwm pretrain fit` says when it is stopped with Ctrl-C.
+
+Lightning ends a fit on Ctrl-C with `sys.exit(1)`, without saving a checkpoint of its own, and says only "Detected
+KeyboardInterrupt, attempting graceful shutdown". This callback closes the progress bar (if there is one) and
+prints, on rank 0, the step reached and the checkpoint the fit can resume from; `interrupted` tells the CLI to
+raise FitInterrupted instead, which exits with 130, as the other stages do on Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import lightning
+from lightning.pytorch.callbacks import Callback, TQDMProgressBar
+
+
+class FitInterrupted(Exception):
+    """A fit stopped with Ctrl-C, after ResumeNotice said where it can resume from."""
+
+
+class ResumeNotice(Callback):
+    def __init__(self) -> None:
+        self.interrupted = False
+
+    def on_exception(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule,
+                     exception: BaseException) -> None:
+        if not isinstance(exception, KeyboardInterrupt):
+            return
+        self.interrupted = True
+        if not trainer.is_global_zero:
+            return
+        bar = trainer.progress_bar_callback
+        if isinstance(bar, TQDMProgressBar) and bar._train_progress_bar is not None:  # None before training began
+            bar._train_progress_bar.close()
+        checkpoint = trainer.checkpoint_callback
+        last = Path(checkpoint.last_model_path or checkpoint.best_model_path) if checkpoint else Path()
+        where = "no checkpoint was written yet"  # Path() is ".", never a file
+        if last.is_file():
+            where = f"resume with --ckpt_path {last} (written {time.strftime('%H:%M:%S', time.localtime(last.stat().st_mtime))})"
+        print(f"hauwm pretrain fit: interrupted at step {trainer.global_step}; {where}", file=sys.stderr)

@@ -1,0 +1,44 @@
+"""Ctrl-C during `hauwm pretrain fit`: Lightning stops the fit with sys.exit(1) and no checkpoint of its own; the
+last line names the step reached and the checkpoint to resume from, with or without a progress bar, and the
+command exits with 130."""
+
+from __future__ import annotations
+
+import lightning
+import pytest
+import torch
+
+from model.interrupt import ResumeNotice
+from model.progress import StepProgressBar
+
+from conftest import fit  # noqa: I001 (tests/model/conftest.py)
+from test_progress import Regression
+
+
+class CtrlC(lightning.Callback):
+    """Ctrl-C before optimizer step 3 (as the Trainer's callback `test_interrupt.CtrlC`)."""
+
+    def on_train_batch_start(self, trainer: lightning.Trainer, *_) -> None:
+        if trainer.global_step == 3:
+            raise KeyboardInterrupt
+
+
+@pytest.mark.parametrize("bar", [True, False], ids=["bar", "no-bar"])
+def test_ctrl_c_names_the_checkpoint_to_resume_from(tmp_path, capsys, bar):
+    checkpoints = lightning.pytorch.callbacks.ModelCheckpoint(tmp_path / "checkpoints", save_last=True,
+                                                              every_n_train_steps=2)
+    notice = ResumeNotice()
+    trainer = lightning.Trainer(max_steps=10, accelerator="cpu", logger=False, enable_model_summary=False,
+                                enable_progress_bar=bar, callbacks=[CtrlC(), checkpoints, notice]
+                                + ([StepProgressBar()] if bar else []))
+    with pytest.raises(SystemExit):
+        trainer.fit(Regression())
+    assert notice.interrupted
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    assert f"hauwm pretrain fit: interrupted at step 3; resume with --ckpt_path {last} (written " in capsys.readouterr().err
+    assert torch.load(last, weights_only=False)["global_step"] == 2
+
+
+def test_the_cli_exits_130_and_says_so_before_any_checkpoint(built_shards, tmp_path, capsys):
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.callbacks+=test_interrupt.CtrlC") == 130
+    assert capsys.readouterr().err.rstrip().endswith("interrupted at step 3; no checkpoint was written yet")
