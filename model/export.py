@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 
 from model.config import ConfigError, WorldModelConfig, saved_settings
 from model.world_model import WorldModel
@@ -59,7 +59,9 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
     tensors = {name: t.detach().float().contiguous().cpu() for name, t in model.state_dict().items()}
     # one metadata entry: safetensors writes several in a different order each process, and fine-tuning runs
     # recognise their export by the file's sha256 (finetune/train.py), so the same model must give the same bytes
-    save_file(tensors, str(out / WEIGHTS_FILE), metadata={"hauwm": f"{KIND}, schema_version {SCHEMA_VERSION}"})
+    # safetensors' save_file makes the file readable by its owner only; written as bytes it follows the umask, so an
+    # export on shared storage is readable by whoever may read the directory
+    (out / WEIGHTS_FILE).write_bytes(save(tensors, metadata={"hauwm": f"{KIND}, schema_version {SCHEMA_VERSION}"}))
     config = {
         "schema_version": SCHEMA_VERSION,
         "kind": KIND,

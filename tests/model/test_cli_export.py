@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import pickle
 import shutil
 
@@ -194,6 +195,13 @@ def test_an_export_is_not_replaced_without_overwrite(tiny_run, tiny_export, tmp_
     assert (out / "weights.safetensors").read_bytes() != weights  # untouched
     assert main(["export", checkpoint, "--out", str(out), "--overwrite"]) == 0
     assert (out / "weights.safetensors").read_bytes() == weights  # the same checkpoint gives the same bytes
+    umask = os.umask(0o022)
+    try:  # readable by others as the umask allows (on shared storage); safetensors' save_file gave 0600
+        assert main(["export", checkpoint, "--out", str(out), "--overwrite"]) == 0
+    finally:
+        os.umask(umask)
+    assert {path.name: path.stat().st_mode & 0o777 for path in out.iterdir()} == {
+        "weights.safetensors": 0o644, "config.json": 0o644}
 
 
 def test_export_of_a_missing_or_damaged_checkpoint_is_refused(tiny_run, tmp_path, capsys):
