@@ -175,11 +175,19 @@ def collect(args: argparse.Namespace) -> None:
 
 
 def inspect(args: argparse.Namespace) -> None:
-    from finetune.datasets.minari_io import dataset_path, has_success, hauwm_metadata, iterate_episodes, open_dataset
+    from finetune.datasets.minari_io import (DatasetError, dataset_path, has_success, hauwm_metadata, iterate_episodes,
+                                            open_dataset)
     from finetune.datasets.summary import Summary
+    from finetune.envs.references import REFERENCE_RETURNS
 
     dataset = open_dataset(args.dataset_id)
     settings = hauwm_metadata(dataset)
+    if args.task and settings.get("task") not in (None, args.task):
+        raise DatasetError(f"{args.dataset_id} records its task, {settings['task']}: --task is for a dataset made "
+                           "elsewhere that records none; leave it out")
+    if args.task and args.task not in REFERENCE_RETURNS:
+        raise DatasetError(f"--task {args.task} has no Table 4 references to normalise returns with; the paper's tasks: "
+                           f"{', '.join(REFERENCE_RETURNS)}")
     task = args.task or settings.get("task")
     with_success = has_success(dataset)
     summary = Summary(task)

@@ -337,7 +337,7 @@ def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
         raise DatasetError("merge needs at least two datasets")
     datasets = [open_dataset(dataset_id) for dataset_id in source_ids]
     settings = [hauwm_metadata(dataset) for dataset in datasets]
-    for key in ("task", "action_repeat", "image_size"):
+    for key in ("task", "action_repeat", "fast_render", "image_size"):  # what offline RL and imitation check
         values = {s[key] for s in settings if key in s}
         if len(values) > 1:
             described = ", ".join(f"{i} has {s.get(key)!r}" for i, s in zip(source_ids, settings))

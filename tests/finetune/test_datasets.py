@@ -165,15 +165,25 @@ def test_missing_malformed_and_existing_ids_are_refused_with_what_exists(random_
     write_dataset("test/dial-v0", iter(random_episodes[:1]), {"task": "metaworld_dial_turn"})
     with pytest.raises(DatasetError, match="cannot merge datasets with different task"):
         merge_datasets(["test/random-v0", "test/dial-v0"], "test/both-v0")
+    write_dataset("test/slow-v0", iter(random_episodes[:1]), {"task": TASK, "fast_render": False})
+    write_dataset("test/fast-v0", iter(random_episodes[:1]), {"task": TASK, "fast_render": True})
+    with pytest.raises(DatasetError, match="cannot merge datasets with different fast_render"):
+        merge_datasets(["test/slow-v0", "test/fast-v0"], "test/both-v0")
+    assert main(["inspect", "test/random-v0", "--task", "dmc_cheetah_run"]) == 2  # a task of its own: not replaced
+    assert f"test/random-v0 records its task, {TASK}: --task is for a dataset made elsewhere" in capsys.readouterr().err
 
 
-def test_images_are_found_and_resized_or_refused():
+def test_images_are_found_and_resized_or_refused(capsys):
     steps = 3
     chw = gymnasium.spaces.Box(0, 255, (3, 84, 84), np.uint8)
     write_foreign("other/chw84-v0", chw, np.full((steps + 1, 3, 84, 84), 200, np.uint8))
     (episode,) = load_episodes("other/chw84-v0", action_dim=4, progress=False)
     assert episode["obs"].shape == (steps + 1, 3, 64, 64) and (episode["obs"] == 200).all()  # INTER_AREA resize
     assert episode["success"].shape == (steps + 1,) and not episode["success"].any()  # no success in this suite
+    assert main(["inspect", "other/chw84-v0", "--task", "dmc_cheetah_run", "--no-progress"]) == 0  # made elsewhere
+    assert "task            dmc_cheetah_run" in capsys.readouterr().out
+    assert main(["inspect", "other/chw84-v0", "--task", "cheetah"]) == 2
+    assert "--task cheetah has no Table 4 references" in capsys.readouterr().err
 
     pixels = gymnasium.spaces.Dict({"pixels": gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8),
                                     "state": gymnasium.spaces.Box(-1, 1, (5,), np.float64)})
