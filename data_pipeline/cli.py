@@ -73,6 +73,11 @@ def _preview(args: argparse.Namespace) -> int:
 def _sample_data(args: argparse.Namespace) -> int:
     from .sample_data import make_sample_data
 
+    taken = [path for path in (args.out / "annotations", args.out / "videos") if path.is_dir() and any(path.iterdir())]
+    if taken:  # a dataset of its own, or an earlier sample: its annotations would be replaced, its videos orphaned
+        print(f"hauwm shards sample-data: {args.out} already holds a dataset ({', '.join(p.name + '/' for p in taken)}): "
+              "pass another --out, or delete it first", file=sys.stderr)
+        return 2
     broken = make_sample_data(args.out, args.clips, with_broken=args.with_broken, seed=args.seed, workers=args.workers)
     print(f"wrote {args.clips} clips" + (f" and {len(broken)} broken entries" if broken else "") +
           f" to {args.out} (annotations/ and videos/)")

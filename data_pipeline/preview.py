@@ -5,28 +5,25 @@ with its frame index and gap; the row's caption (class index: caption) sits abov
 from __future__ import annotations
 
 import json
-import tarfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from .sampling import gaps_of, sample_indices
-from .shard_format import MANIFEST_FILE, ShardDirError, decode_frames, read_manifest
+from .shard_format import MANIFEST_FILE, ShardDirError, decode_frames, read_manifest, read_samples
 
 SCALE, LABEL_HEIGHT, CAPTION_HEIGHT = 2, 14, 16
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # what cv2.imwrite writes here
 
 
-def _clips(directory: Path, shards: list[dict]):
+def _clips(directory: Path, shards: list[dict]) -> Iterator[dict]:
+    """The clips of `shards` in order, as read_samples gives them (a damaged shard: ValueError naming it)."""
     for shard in shards:
-        with tarfile.open(directory / shard["name"]) as tar:
-            members: dict[str, dict[str, bytes]] = {}
-            for member in tar:
-                key, extension = member.name.split(".", 1)
-                members.setdefault(key, {})[extension] = tar.extractfile(member).read()
-                if len(members[key]) == 2:
-                    yield members.pop(key)
+        path = directory / shard["name"]
+        with path.open("rb") as stream:
+            yield from read_samples(stream, str(path))
 
 
 def _text(canvas: np.ndarray, text: str, x: int, y: int, scale: float = 0.35) -> None:
@@ -44,15 +41,18 @@ def write_preview(directory: Path, out: Path, split: str | None = None, clips: i
         raise ShardDirError(f"{directory / MANIFEST_FILE} has no split {split!r} (it has {', '.join(manifest['splits'])})")
     rng = np.random.default_rng(seed)
     rows = []
-    for files in _clips(directory, manifest["splits"][split]["shards"]):
-        metadata = json.loads(files["json"])
-        indices = sample_indices(metadata["num_frames"], length, k_max, rng)
-        if indices is None:
-            continue
-        extension = next(e for e in files if e != "json")
-        rows.append((metadata, indices, decode_frames(files[extension], extension, indices)))
-        if len(rows) == clips:
-            break
+    try:
+        for files in _clips(directory, manifest["splits"][split]["shards"]):
+            metadata = json.loads(files["json"])
+            indices = sample_indices(metadata["num_frames"], length, k_max, rng)
+            if indices is None:
+                continue
+            extension = next(e for e in files if e not in ("json", "__key__"))
+            rows.append((metadata, indices, decode_frames(files[extension], extension, indices)))
+            if len(rows) == clips:
+                break
+    except ValueError as error:  # a shard read_samples or decode_frames cannot read, named with what to do
+        raise ShardDirError(str(error)) from None
     if not rows:
         raise ShardDirError(f"split {split!r} in {directory} has no clip with at least {length} frames")
     side = rows[0][2].shape[1] * SCALE

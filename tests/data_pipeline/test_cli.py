@@ -76,6 +76,16 @@ def test_preview_writes_a_grid_of_clips(built_shards, tmp_path):
     assert not (tmp_path / "preview.txt").exists()
 
 
+def test_preview_of_a_damaged_shard_names_it(built_shards, tmp_path, capsys):
+    shards = tmp_path / "shards"
+    shutil.copytree(built_shards, shards)
+    damaged = sorted(shards.glob("train-*.tar"))[0]
+    damaged.write_bytes(damaged.read_bytes()[: damaged.stat().st_size // 2])
+    assert main(["preview", str(shards), "--out", str(tmp_path / "preview.png"), "--clips", "1000"]) == 2
+    assert f"{damaged} is not a readable shard (unexpected end of data); check it with `hauwm shards inspect" in \
+        capsys.readouterr().err
+
+
 def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
     assert main(["sample-data", "--out", str(tmp_path), "--clips", "3", "--workers", "1"]) == 0
     annotations = tmp_path / "annotations"
@@ -91,6 +101,10 @@ def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
     labels = json.loads((annotations / "something-something-v2-labels.json").read_text())
     assert all(isinstance(index, str) for index in labels.values())
     assert json.loads((tmp_path / "broken.json").read_text()) == {}
+    written = {path: path.read_bytes() for path in annotations.iterdir()}
+    assert main(["sample-data", "--out", str(tmp_path), "--clips", "2", "--workers", "1"]) == 2  # not over a dataset
+    assert f"{tmp_path} already holds a dataset (annotations/, videos/)" in capsys.readouterr().err
+    assert {path: path.read_bytes() for path in annotations.iterdir()} == written
 
 
 @pytest.mark.parametrize(("argv", "message"), [
