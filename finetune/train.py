@@ -130,7 +130,13 @@ def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dic
     if rng is not None:
         state["replay_rng"] = rng.bit_generator.state
     tmp = path.with_suffix(".tmp")
-    torch.save(state, tmp)
+    try:
+        torch.save(state, tmp)
+    except (OSError, RuntimeError) as err:  # torch's zip writer reports a full disk as a RuntimeError
+        tmp.unlink(missing_ok=True)
+        raise FinetuneError(f"{path} could not be written ({str(err).splitlines()[0]}; a full disk or quota?); what "
+                            "was written before is kept: free some space and run the same command again (it goes on "
+                            "from the last checkpoint)") from None
     os.replace(tmp, path)
 
 

@@ -6,7 +6,8 @@
     hauwm datasets ...   finetune.datasets.cli (Minari datasets for offline RL: collect, merge, inspect, list)
 
 A stage's own errors are its to report; what reaches this dispatcher is reported here in one line: Ctrl-C while
-a stage starts up, a reader of stdout that has gone (`| head`), and a path that cannot be made, read or written.
+a stage starts up, a reader of stdout that has gone (`| head`), a path that cannot be made, read or written, and a
+full disk or quota.
 """
 
 from __future__ import annotations
@@ -32,13 +33,18 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+FULL = (errno.ENOSPC, errno.EDQUOT)  # a full disk, or the user's disk quota reached (common on clusters)
+
+
 def path_problem(err: OSError) -> str:
-    """What went wrong with err.filename, and what to do, in one clause."""
+    """What went wrong with err.filename (None for a write to a file already open), and what to do, in one clause."""
     path = err.filename
+    if err.errno in FULL:
+        where = f" while writing {path}" if path else ""
+        full = "no space left on the device" if err.errno == errno.ENOSPC else "the disk quota is reached"
+        return f"{full}{where}: free some space, then run the same command again (a run goes on from its last checkpoint)"
     if err.errno in (errno.EEXIST, errno.ENOTDIR):  # mkdir of an output directory where a file is
         return f"{path} is a file, or lies under one, where a directory is needed: pass another path"
-    if err.errno == errno.ENOSPC:
-        return f"no space left on the device while writing {path}: free some space first"
     return f"{path}: {err.strerror}: check the path and its permissions"
 
 
@@ -63,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush goes nowhere
         return 128 + signal.SIGPIPE
     except OSError as err:  # a path a stage could not make, read or write: one line naming it, not a traceback
-        if err.filename is None:  # not about a path (a socket, a library's own failure): keep the traceback
+        if err.filename is None and err.errno not in FULL:  # not about a path (a socket, a library's own failure)
             raise
         print(f"hauwm {argv[0]}: error: {path_problem(err)}", file=sys.stderr)
         return 2

@@ -59,6 +59,9 @@ def test_a_full_disk_is_named_and_other_os_errors_keep_their_traceback(monkeypat
     monkeypatch.setattr(importlib, "import_module", lambda name: stage(OSError(errno.ENOSPC, "No space left", "/d/x.tar")))
     assert main(["shards", "build"]) == 2
     assert "no space left on the device while writing /d/x.tar" in capsys.readouterr().err
+    monkeypatch.setattr(importlib, "import_module", lambda name: stage(OSError(errno.EDQUOT, "Disk quota exceeded")))
+    assert main(["finetune"]) == 2  # a write to a file already open: no path to name, the cause still said
+    assert "hauwm finetune: error: the disk quota is reached: free some space" in capsys.readouterr().err
     monkeypatch.setattr(importlib, "import_module", lambda name: stage(ConnectionResetError("peer")))
     with pytest.raises(ConnectionResetError):  # not about a path: a bug or a network failure, shown in full
         main(["shards", "build"])

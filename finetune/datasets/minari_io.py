@@ -276,6 +276,17 @@ def _episode_buffer(episode: dict[str, np.ndarray]):
                          terminations=terminations, truncations=truncations, infos=infos)
 
 
+def check_room(path: Path, episode: dict[str, np.ndarray]) -> None:
+    """Refuse (DatasetError) to write `episode` where the disk has less room than twice its raw bytes: HDF5 does not
+    fail cleanly on a full disk (it crashed the process, leaving a damaged dataset behind), so it must never get there."""
+    existing = next(parent for parent in (path, *path.parents) if parent.exists())
+    needed, free = 2 * sum(value.nbytes for value in episode.values()), shutil.disk_usage(existing).free
+    if free < needed:
+        raise DatasetError(f"no room for the next episode under {existing} ({free / 1e6:.1f} MB free, {needed / 1e6:.1f} "
+                           "MB needed): free some space or point MINARI_DATASETS_PATH elsewhere; the partial dataset "
+                           "is deleted")
+
+
 def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], metadata: dict[str, Any],
                   jpeg: bool = False, description: str | None = None):
     """Write episodes (replay layout, obs [T+1, 3, 64, 64]) as a new Minari dataset; returns the MinariDataset.
@@ -296,9 +307,10 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
     if path.exists():
         raise DatasetError(f"dataset {dataset_id!r} already exists at {path}: use another ID (e.g. the next version "
                            "-vN) or delete that directory")
-    dataset, with_success, count = None, None, 0
+    dataset, with_success = None, None
     try:
         for episode in episodes:
+            check_room(path, episode)
             if dataset is None:
                 with_success = "success" in episode
                 observation_space = gymnasium.spaces.Box(0, 255, episode["obs"].shape[2:] + (3,), np.uint8)
@@ -312,17 +324,15 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
             if ("success" in episode) != with_success:
                 raise ValueError("episodes of one dataset must all have, or all lack, a success flag")
             dataset.update_dataset_from_buffer([_episode_buffer(episode)])
-            count += 1
+        if dataset is None:
+            raise DatasetError(f"dataset {dataset_id!r}: no episodes to write")
+        extra: dict[str, Any] = {METADATA_KEY: {**metadata, "has_success": with_success}}
+        if metadata.get("task") in REFERENCE_RETURNS:
+            extra["ref_min_score"], extra["ref_max_score"] = map(float, REFERENCE_RETURNS[metadata["task"]])
+        dataset.storage.update_metadata(extra)  # a dataset without it would pass for one of unknown task
     except BaseException:
         shutil.rmtree(path, ignore_errors=True)
         raise
-    if dataset is None:
-        shutil.rmtree(path, ignore_errors=True)
-        raise DatasetError(f"dataset {dataset_id!r}: no episodes to write")
-    extra: dict[str, Any] = {METADATA_KEY: {**metadata, "has_success": with_success}}
-    if metadata.get("task") in REFERENCE_RETURNS:
-        extra["ref_min_score"], extra["ref_max_score"] = map(float, REFERENCE_RETURNS[metadata["task"]])
-    dataset.storage.update_metadata(extra)
     return dataset
 
 

@@ -7,7 +7,10 @@ temporary MINARI_DATASETS_PATH.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import re
+import shutil
+import types
 
 import gymnasium
 import h5py
@@ -144,6 +147,36 @@ def test_collect_from_a_runs_replay_and_with_its_agent(tmp_path, tiny_config, ca
     assert main(["collect", "--policy", "random", "--best", "--task", TASK, "--episodes", "1", "--dataset-id",
                  "test/y-v0"]) == 2
     assert "--best picks which checkpoint of a run --policy agent plays" in capsys.readouterr().err
+
+
+def test_a_write_that_fails_leaves_no_partial_dataset(random_episodes, monkeypatch, datasets_root):
+    def cut_short():
+        yield random_episodes[0]
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_dataset("test/cut-v0", cut_short(), {"task": TASK})
+    update_metadata = minari.dataset.minari_storage.MinariStorage.update_metadata
+
+    def full_at_the_end(storage, metadata: dict) -> None:  # the disk fills as our metadata goes in, after every episode
+        if "hauwm" in metadata:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        update_metadata(storage, metadata)
+
+    monkeypatch.setattr(minari.dataset.minari_storage.MinariStorage, "update_metadata", full_at_the_end)
+    with pytest.raises(OSError, match="No space left"):
+        write_dataset("test/full-v0", iter(random_episodes[:1]), {"task": TASK})
+    assert not list_datasets() and not any(datasets_root.rglob("*.hdf5"))
+
+    # HDF5 crashes the process on a full disk: the room for each episode is checked before it is written
+    monkeypatch.undo()
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(datasets_root))
+    episode_bytes = sum(value.nbytes for value in random_episodes[0].values())
+    free = iter([10 * episode_bytes, episode_bytes])  # room for the first episode, not for the second
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: types.SimpleNamespace(free=next(free)))
+    with pytest.raises(DatasetError, match=r"no room for the next episode under .* MB free, .* MB needed\): free some"):
+        write_dataset("test/room-v0", iter(random_episodes[:2]), {"task": TASK})
+    assert not list_datasets()
 
 
 def test_missing_malformed_and_existing_ids_are_refused_with_what_exists(random_episodes, capsys):

@@ -10,7 +10,7 @@ import torch
 from finetune.cli import best_kept, main
 from finetune.config import load_config
 from finetune.train import (BEST, CHECKPOINT, FinetuneError, build_agent, exclusive, export_fingerprint, load_checkpoint,
-                            resolve_device, train)
+                            resolve_device, save_checkpoint, train)
 from model.export import export_frozen
 from model.world_model import WorldModel
 
@@ -123,6 +123,23 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     assert main(run + ["--pretrained", str(export_dir)]) == 2
     err = capsys.readouterr().err
     assert f"{checkpoint} cannot be read (it is truncated or not a checkpoint" in err and "Traceback" not in err
+
+
+def test_a_checkpoint_that_cannot_be_written_keeps_the_one_before(tiny_config, tmp_path, monkeypatch):
+    cfg = tiny_config(agent="scratch", logdir=str(tmp_path))
+    agent = build_agent(cfg, 1, None, torch.device("cpu"))
+    save_checkpoint(tmp_path / CHECKPOINT, agent, cfg, {"env_step": 100}, "")
+    before = (tmp_path / CHECKPOINT).read_bytes()
+
+    def full_disk(state, path):  # what torch's zip writer says when the disk fills halfway through
+        path.write_bytes(before[:100])
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 64 vs 0")
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(FinetuneError, match=r"checkpoint.pt could not be written \(\[enforce fail .*; a full disk or "
+                                            r"quota\?\); what was written before is kept"):
+        save_checkpoint(tmp_path / CHECKPOINT, agent, cfg, {"env_step": 200}, "")
+    assert (tmp_path / CHECKPOINT).read_bytes() == before and not list(tmp_path.glob("*.tmp"))
 
 
 @pytest.mark.parametrize("device", ["gpu", "GPU", "cuda:x"])
