@@ -76,6 +76,7 @@ def lightning_cli(args: list[str]):
     refuse_flat_sizes(args)
     from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
     from lightning.pytorch.cli import LightningCLI
+    from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
     from data_pipeline.datamodule import ShardDataModule
     from model.config import WorldModelConfig
@@ -97,6 +98,11 @@ def lightning_cli(args: list[str]):
             subcommand = self.config.get("subcommand") or ""
             config = self.config.get(subcommand, {})
             ckpt_path = config.get("ckpt_path") if config else None
+            if ckpt_path == "last":  # Lightning's word for the newest checkpoint: this run's, if it has one yet
+                last = Path(config["trainer"]["default_root_dir"] or ".") / "checkpoints" / "last.ckpt"
+                ckpt_path = config["ckpt_path"] = str(last) if last.is_file() else None
+                rank_zero_only(print)(f"hauwm pretrain {subcommand}: --ckpt_path last: " + (
+                    f"resuming from {last}" if ckpt_path else f"no {last} yet, starting at step 0"), file=sys.stderr)
             if not (ckpt_path and Path(ckpt_path).is_file()):
                 return super()._parse_ckpt_path()
             saved = read_checkpoint(ckpt_path)[0]["hyper_parameters"]

@@ -184,6 +184,16 @@ def test_a_resume_keeps_this_runs_compile_setting(built_shards, tiny_run, tmp_pa
     assert config["model"]["compile"] == "default" and config["model"]["lr"] == 1e-3
 
 
+def test_ckpt_path_last_resumes_the_runs_newest_checkpoint_or_starts_afresh(built_shards, tiny_run, tmp_path, capsys):
+    shutil.copytree(tiny_run / "checkpoints", tmp_path / "run" / "checkpoints")
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert fit(built_shards, tmp_path / "run", "--ckpt_path", "last", "--trainer.max_steps", str(RUN_STEPS)) == 0
+    assert f"--ckpt_path last: resuming from {last}" in capsys.readouterr().err  # at max_steps already: ends at once
+    assert fit(built_shards, tmp_path / "fresh", "--ckpt_path", "last", "--trainer.max_steps", "1") == 0
+    assert f"--ckpt_path last: no {tmp_path / 'fresh' / 'checkpoints' / 'last.ckpt'} yet, starting at step 0" in \
+        capsys.readouterr().err
+
+
 def test_an_export_is_not_replaced_without_overwrite(tiny_run, tiny_export, tmp_path, capsys):
     out = tmp_path / "export"
     shutil.copytree(tiny_export, out)
