@@ -67,17 +67,26 @@ def load_split(annotations: Path, split: str, labels: dict[str, int] | None = No
     entries = _read_json(path)
     if not isinstance(entries, list):
         raise AnnotationError(f"{path}: expected a list of clip entries")
-    if split == "test":
-        return [ClipRecord(id=str(entry["id"]), split=split) for entry in entries]
-    labels = load_labels(annotations) if labels is None else labels
-    records = []
+    labels = {} if split == "test" else load_labels(annotations) if labels is None else labels
+    records: list[ClipRecord] = []
+    first_of: dict[str, int] = {}  # id -> its entry's position
     for position, entry in enumerate(entries):
+        if not isinstance(entry, dict) or "id" not in entry:
+            raise AnnotationError(f"{path}: entry {position} is not an object with an \"id\": {str(entry)[:80]}")
+        clip_id = str(entry["id"])
+        if clip_id in first_of:  # shards key clips by id: a repeat would make two samples of one key
+            raise AnnotationError(f"{path}: entries {first_of[clip_id]} and {position} both have id {clip_id!r}; "
+                                  "each clip must appear once: remove the repeat")
+        first_of[clip_id] = position
+        if split == "test":  # no labels: the test split's entries are ids only
+            records.append(ClipRecord(id=clip_id, split=split))
+            continue
         try:
             name = class_name(entry["template"])
-            records.append(ClipRecord(id=str(entry["id"]), split=split, caption=entry["label"],
+            records.append(ClipRecord(id=clip_id, split=split, caption=entry["label"],
                                       template=entry["template"], class_index=labels[name]))
         except KeyError as missing:
-            raise AnnotationError(f"{path}: entry {position} (id {entry.get('id')!r}): {missing} not found "
+            raise AnnotationError(f"{path}: entry {position} (id {clip_id!r}): {missing} not found "
                                   f"(class name {class_name(entry.get('template', ''))!r} must be a key of "
                                   f"{annotation_path(annotations, 'labels')})") from None
     return records

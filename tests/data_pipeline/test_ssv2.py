@@ -62,3 +62,15 @@ def test_unknown_template_and_missing_file_give_clear_errors(annotations):
     with pytest.raises(AnnotationError, match="train.json: file not found"):
         load_split(annotations, "train")
     assert load_labels(annotations)["Pushing something from left to right"] == 2
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_a_repeated_id_or_an_entry_without_one_is_refused_by_position(annotations, split):
+    entries = json.loads((annotations / f"something-something-v2-{split}.json").read_text())
+    write(annotations, split, entries + [entries[0]])
+    with pytest.raises(AnnotationError, match=rf"{split}.json: entries 0 and {len(entries)} both have id "
+                                              rf"'{entries[0]['id']}'; each clip must appear once"):
+        load_split(annotations, split)
+    write(annotations, split, entries + [{"label": "no id"}])
+    with pytest.raises(AnnotationError, match=rf"{split}.json: entry {len(entries)} is not an object with an \"id\""):
+        load_split(annotations, split)
