@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 import time
 from collections.abc import Iterable, Iterator
@@ -213,7 +214,12 @@ def list_(args: argparse.Namespace) -> None:
 
     datasets, damaged = scan_datasets()
     for dataset_id, why in damaged.items():
-        print(f"damaged: {dataset_id} ({why}): write it again, or delete {dataset_path(dataset_id)}", file=sys.stderr)
+        moved = re.search(r"does not match id '([^']+)'", why)  # a directory copied or moved: its metadata keeps its ID
+        if moved:
+            print(f"moved: {dataset_id} holds dataset {moved.group(1)} (its data/metadata.json names it so): move it "
+                  f"back, or write it again under the new ID", file=sys.stderr)
+        else:
+            print(f"damaged: {dataset_id} ({why}): write it again, or delete {dataset_path(dataset_id)}", file=sys.stderr)
     if not datasets:
         print(f"no datasets under {dataset_path()} (MINARI_DATASETS_PATH); make one with `hauwm datasets collect`")
         return

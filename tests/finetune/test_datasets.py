@@ -113,6 +113,9 @@ def test_cli_collects_expert_and_random_inspects_merges_and_lists(capsys):
     for dataset_id in ("test/expert-v0", "test/medexp-v0"):
         assert dataset_id in listing.out
     assert "test/random-v0" not in listing.out and "damaged: test/random-v0 (Expecting" in listing.err
+    shutil.copytree(minari.storage.get_dataset_path("test/expert-v0"), minari.storage.get_dataset_path("test/copy-v0"))
+    assert main(["list"]) == 0  # a copy keeps the ID it was written under
+    assert "moved: test/copy-v0 holds dataset test/expert-v0" in capsys.readouterr().err
 
 
 def test_collect_from_a_runs_replay_and_with_its_agent(tmp_path, tiny_config, capsys):
