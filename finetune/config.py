@@ -146,6 +146,21 @@ class FinetuneConfig:
 WHERE_CONFIGS_ARE = "the configs are in configs/finetune/, configs/offline/ and configs/imitation/"
 
 
+class UniqueKeyLoader(yaml.SafeLoader):
+    """yaml.safe_load's loader, except that a key written twice in one mapping is an error (YAML itself keeps the
+    last: a second `task:` further down a config would silently train another task)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: set[object] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"{key!r} is set twice: keep one",
+                                                        key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def load_config(path: str | Path | None, overrides: dict[str, object] | None = None) -> FinetuneConfig:
     """Read a YAML config (None: the defaults) and apply `overrides`; unknown keys are an error."""
     values: dict[str, object] = {}
@@ -154,7 +169,7 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
         if not path.is_file():
             raise ConfigError(f"config file {path} not found ({WHERE_CONFIGS_ARE})")
         try:
-            values = yaml.safe_load(path.read_text())
+            values = yaml.load(path.read_text(), UniqueKeyLoader)
         except yaml.YAMLError as err:
             mark = getattr(err, "problem_mark", None)
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

@@ -106,6 +106,10 @@ def test_a_config_that_is_not_yaml_or_a_value_of_another_kind_is_refused_by_name
     broken.write_text("steps: [1, 2\nagent: x\n")
     with pytest.raises(ConfigError, match=f"config file {broken} is not valid YAML: .* at line 2, column 6"):
         load_config(broken)
+    broken.write_text("task: dmc_cheetah_run\nsteps: 10\ntask: dmc_walker_run\n")  # YAML alone keeps the last
+    with pytest.raises(ConfigError, match=f"config file {broken} is not valid YAML: 'task' is set twice: keep one at "
+                                          "line 3, column 1"):
+        load_config(broken)
     broken.write_text("# settings to come\n")
     with pytest.raises(ConfigError, match=f"config file {broken} holds no settings: a config names at least its task"):
         load_config(broken)
