@@ -61,11 +61,11 @@ class UniformOrConstant:
         return np.full(self.shape, self.constant, np.float32)
 
 
-def random_returns(task: str, action_repeat: int, episodes: int, seed: int = 123) -> list[float]:
+def random_returns(task: str, action_repeat: int, time_limit: int | None, episodes: int, seed: int = 123) -> list[float]:
     from finetune.envs import make_env
     from finetune.rollout import play_episode
 
-    env = make_env(task, seed=seed, action_repeat=action_repeat, fast_render=True)
+    env = make_env(task, seed=seed, action_repeat=action_repeat, time_limit=time_limit, fast_render=True)
     policy = UniformOrConstant(env.action_space.shape, np.random.default_rng(seed))
     return [float(play_episode(env, policy)["reward"].sum()) for _ in range(episodes)]
 
@@ -124,8 +124,8 @@ def summarize(name: str, points: list[tuple[int, float]], baseline: list[float],
 def report(logdirs: list[Path], out: Path, minutes: float | None = None) -> None:
     """Random-policy baseline, a table of eval returns (one column per run) and the curve PNG."""
     configs = [load_config(logdir / "config.yaml") for logdir in logdirs]
-    task, action_repeat = configs[0].task, configs[0].action_repeat
-    baseline = random_returns(task, action_repeat, episodes=10)
+    task, action_repeat, time_limit = configs[0].task, configs[0].action_repeat, configs[0].time_limit
+    baseline = random_returns(task, action_repeat, time_limit, episodes=10)  # episodes as long as the runs' own
     curves = {f"{d.name}: {c.agent} agent, seed {c.seed}": read_evals(d) for c, d in zip(configs, logdirs)}
     print(f"\nrandom policy: {np.mean(baseline):.1f} ± {np.std(baseline):.1f} (10 episodes, action repeat {action_repeat})")
     steps = sorted({step for points in curves.values() for step, _ in points})
@@ -166,7 +166,8 @@ def main() -> None:
     settings = {**(GPU_SETTINGS if args.gpu else CPU_SETTINGS), **dict(parse_override(text) for text in args.set)}
     logdir = Path(args.logdir)
     done = load_config(logdir / "config.yaml").steps if (logdir / "config.yaml").exists() else 0  # a run to go on with
-    cfg = load_config(None, dict(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir, steps=done, **settings))
+    cfg = load_config(None, dict(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir,
+                                 steps=done + args.chunk, **settings))
     if args.agent == "hauwm":  # the new stream takes the export's sizes
         cfg = dataclasses.replace(cfg, deter=None, stoch=None)
     print(f"machine: {describe_machine(cfg.device)}")
@@ -174,9 +175,9 @@ def main() -> None:
           f"config { {key: getattr(cfg, key) for key in (*settings, 'layer_norm')} }", flush=True)
     start = time.perf_counter()
     while time.perf_counter() - start < args.minutes * 60:
-        cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)
         train(cfg, args.pretrained, progress=False)
         print(f"{(time.perf_counter() - start) / 60:.1f} min: {cfg.steps} env steps", flush=True)
+        cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)
     report([logdir], args.out or logdir / "learning_curve.png", (time.perf_counter() - start) / 60)
 
 

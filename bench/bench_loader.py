@@ -17,6 +17,7 @@ workers have exited), which stay meaningful on a machine shared with other jobs.
 from __future__ import annotations
 
 import argparse
+import functools
 import gc
 import resource
 import sys
@@ -61,7 +62,7 @@ def time_epochs(dataset: SequenceDataset, make_batches, epochs: int = 1) -> tupl
 def restarting_workers(dataset: SequenceDataset) -> DataLoader:
     """A DataLoader that starts its workers at every epoch (what `make_dataloader` did before issue 12)."""
     return DataLoader(dataset, batch_size=None, num_workers=dataset.num_workers, persistent_workers=False,
-                      worker_init_fn=_init_worker)
+                      worker_init_fn=functools.partial(_init_worker, "normal"))
 
 
 def report(label: str, seconds: float, cpu: float, sequences: int, seq_len: int) -> None:
@@ -70,7 +71,7 @@ def report(label: str, seconds: float, cpu: float, sequences: int, seq_len: int)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--shards", type=Path, default=None, help="a shard directory (default: build sample shards)")
     parser.add_argument("--encoding", choices=["jpeg", "raw"], default="jpeg", help="of the built sample shards")
     parser.add_argument("--seq-len", type=int, default=16)

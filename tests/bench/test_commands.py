@@ -60,3 +60,21 @@ def test_bench_agent_runs_on_the_cpu():
     assert shown.startswith("machine: ") and "MUJOCO_GL=" in shown and "MUJOCO_GL=unset" not in shown
     for row in ("hauwm    eager", "scratch  eager", "agent steps/s summed over the envs"):
         assert row in shown, shown
+
+
+def test_bench_loader_runs_every_section(built_shards):
+    done = run_script(REPO / "bench" / "bench_loader.py", "--shards", str(built_shards), "--batches", "4",
+                      "--epochs", "2", "--epoch-batches", "2", "--batch-size", "4", "--seq-len", "8", timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    for row in ("main process:", "DataLoader, 2 workers:", "workers started once:", "workers restarted every epoch:"):
+        assert row in done.stdout, done.stdout
+
+
+def test_bench_learning_starts_a_new_run_and_reports_it(tmp_path):
+    """The GPU learning check (`--gpu`) is this script at Table 3 sizes: a fresh --logdir must train, not fail."""
+    settings = ["threads=1", "prefill=50", "eval_every=100", "eval_episodes=1", "time_limit=25", "batch_size=4",
+                "seq_len=8"]
+    done = run_script(REPO / "bench" / "bench_learning.py", "--minutes", "0.01", "--chunk", "100", "--logdir",
+                      str(tmp_path / "run"), *[arg for setting in settings for arg in ("--set", setting)], timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "random policy:" in done.stdout and (tmp_path / "run" / "learning_curve.png").is_file()
