@@ -126,7 +126,14 @@ def lightning_cli(args: list[str]):
             if config.ckpt_path and not Path(config.ckpt_path).is_file():
                 raise ConfigError(f"--ckpt_path {config.ckpt_path} does not exist")
             trainer = config.trainer
+            if trainer.accelerator in ("gpu", "cuda") and not torch.cuda.is_available():
+                raise ConfigError(f"trainer.accelerator is {trainer.accelerator} and no CUDA GPU is visible: for a (slow) "
+                                  "CPU run add --trainer.accelerator cpu --trainer.devices 1 --trainer.strategy auto, or "
+                                  "use configs/pretrain/tiny.yaml")
             no_cuda = trainer.accelerator == "cpu" or (trainer.accelerator == "auto" and not torch.cuda.is_available())
+            if no_cuda and str(trainer.devices) == "-1":  # Lightning's "every GPU"; its CPU accelerator raises a TypeError
+                raise ConfigError("trainer.devices -1 means every GPU, and this run is on the CPU: pass --trainer.devices "
+                                  "1 (or N processes)")
             if str(trainer.precision) in ("16-mixed", "16") and no_cuda:
                 print("hauwm pretrain: float16 autocast needs a GPU; using bf16-mixed on CPU", file=sys.stderr)
                 trainer.precision = "bf16-mixed"

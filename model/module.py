@@ -295,4 +295,4 @@ class PretrainModule(L.LightningModule):
                 logged[f"val/disagreement_k{k}"] = spread
         if not math.isnan(metrics["spearman_k_disagreement"]):
             logged["val/spearman_k_disagreement"] = metrics["spearman_k_disagreement"]
-        self.log_dict(logged)
+        self.log_dict(logged, sync_dist=True)  # equal on every rank (summed above); sync_dist keeps Lightning from warning

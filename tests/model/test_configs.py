@@ -7,6 +7,7 @@ import dataclasses
 import io
 
 import pytest
+import torch
 import yaml
 
 from model.cli import main
@@ -108,3 +109,13 @@ def test_sizes_in_the_old_flat_place_are_refused_with_their_new_place(capsys, tm
                  "--print_config"]) == 2
     err = capsys.readouterr().err
     assert f"{old}: model.deter (like every size) now belongs under model.world_model" in err and "Traceback" not in err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the refusals of a machine without a GPU")
+def test_the_gpu_config_on_a_cpu_machine_says_which_flags_make_it_run(built_shards, capsys):
+    gpu = ["fit", "--config", str(CONFIGS / "ssv2.yaml"), "--data.shards", str(built_shards)]
+    assert main(gpu) == 2
+    assert "trainer.accelerator is gpu and no CUDA GPU is visible: for a (slow) CPU run add --trainer.accelerator " \
+           "cpu --trainer.devices 1 --trainer.strategy auto" in capsys.readouterr().err
+    assert main(gpu + ["--trainer.accelerator", "cpu"]) == 2
+    assert "trainer.devices -1 means every GPU, and this run is on the CPU" in capsys.readouterr().err
