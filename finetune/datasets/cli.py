@@ -168,7 +168,7 @@ def collect(args: argparse.Namespace) -> None:
     start = time.perf_counter()
     description = f"{metadata['source']} episodes of {metadata['task']} (hauwm datasets collect)"
     dataset = write_dataset(args.dataset_id, tracked(episodes, summary, total, args.dataset_id, not args.no_progress),
-                            metadata, jpeg=args.jpeg, description=description)
+                            metadata, jpeg=args.jpeg, description=description, keep_on_interrupt=True)
     minutes = (time.perf_counter() - start) / 60
     print(f"wrote {args.dataset_id} to {dataset_path(args.dataset_id)} ({dataset.storage.get_size():.1f} MB, "
           f"{'JPEG' if args.jpeg else 'raw'} frames, {len(summary.returns) / minutes:.1f} episodes/min)")
@@ -233,7 +233,7 @@ def list_(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     from finetune.config import ConfigError
-    from finetune.datasets.minari_io import DatasetError
+    from finetune.datasets.minari_io import DatasetError, KeptOnInterrupt
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
     from finetune.train import FinetuneError
@@ -255,6 +255,10 @@ def main(argv: list[str] | None = None) -> int:
     except (DatasetError, ConfigError, FinetuneError, PretrainedError, ReplayError) as error:
         print(f"hauwm datasets: error: {error}", file=sys.stderr)
         return 2
+    except KeptOnInterrupt as stopped:
+        print(f"hauwm datasets: interrupted; the {stopped.dataset.total_episodes} episodes finished are kept as "
+              f"{args.dataset_id}: collect more under another ID and `hauwm datasets merge` them", file=sys.stderr)
+        return 130
     except KeyboardInterrupt:
         print("hauwm datasets: interrupted (a dataset being written was deleted)", file=sys.stderr)
         return 130

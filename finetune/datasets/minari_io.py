@@ -45,6 +45,15 @@ class DatasetError(ValueError):
     """A dataset that cannot be used (missing, empty, wrong images or actions); printed without a traceback."""
 
 
+class KeptOnInterrupt(KeyboardInterrupt):
+    """Ctrl-C between two episodes of write_dataset(keep_on_interrupt=True): the episodes written so far were kept
+    as a whole dataset, `dataset`."""
+
+    def __init__(self, dataset) -> None:
+        super().__init__()
+        self.dataset = dataset
+
+
 def dataset_path(dataset_id: str | None = None) -> Path:
     """Where dataset `dataset_id` lives (whether or not it exists): $MINARI_DATASETS_PATH/<ID>; None: the root."""
     from minari.storage.datasets_root_dir import get_dataset_path
@@ -288,11 +297,13 @@ def check_room(path: Path, episode: dict[str, np.ndarray]) -> None:
 
 
 def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], metadata: dict[str, Any],
-                  jpeg: bool = False, description: str | None = None):
+                  jpeg: bool = False, description: str | None = None, keep_on_interrupt: bool = False):
     """Write episodes (replay layout, obs [T+1, 3, 64, 64]) as a new Minari dataset; returns the MinariDataset.
 
     Episodes are appended one at a time as `episodes` yields them (a generator never holds the dataset in
-    memory); if anything fails on the way, the partial dataset is deleted. Frames are stored raw (lossless)
+    memory); if anything fails on the way, the partial dataset is deleted. With `keep_on_interrupt`, Ctrl-C while
+    `episodes` makes the next episode keeps those written as the dataset and raises KeptOnInterrupt (collecting
+    them may have taken hours; a merge, whose part would be a misleading dataset, does not keep them). Frames are stored raw (lossless)
     unless `jpeg`: Minari's JPEG (Pillow, quality 75, 4:2:0 chroma) is about 5x smaller but changes a
     64x64 Meta-World frame by ~6 grey levels on average (docs/datasets.md). `metadata` (our settings: task,
     source, env settings) is stored under the "hauwm" key of the dataset's metadata.json; Table 4's random
@@ -307,9 +318,18 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
     if path.exists():
         raise DatasetError(f"dataset {dataset_id!r} already exists at {path}: use another ID (e.g. the next version "
                            "-vN) or delete that directory")
-    dataset, with_success = None, None
+    dataset, with_success, stopped = None, None, False
+    iterator = iter(episodes)
     try:
-        for episode in episodes:
+        while True:
+            try:
+                episode = next(iterator, None)
+            except KeyboardInterrupt:
+                if not (keep_on_interrupt and dataset is not None):
+                    raise
+                stopped, episode = True, None  # between two episodes: those written make a whole dataset
+            if episode is None:
+                break
             check_room(path, episode)
             if dataset is None:
                 with_success = "success" in episode
@@ -333,6 +353,8 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
     except BaseException:
         shutil.rmtree(path, ignore_errors=True)
         raise
+    if stopped:
+        raise KeptOnInterrupt(dataset)
     return dataset
 
 

@@ -22,7 +22,7 @@ import yaml
 from minari.data_collector import EpisodeBuffer
 
 from finetune.datasets import DatasetError, list_datasets, load_episodes, merge_datasets, write_dataset
-from finetune.datasets.minari_io import hauwm_metadata, open_dataset
+from finetune.datasets.minari_io import KeptOnInterrupt, hauwm_metadata, open_dataset
 from finetune.datasets.cli import main
 from finetune.datasets.sources import RandomPolicy
 from finetune.envs import make_env
@@ -159,6 +159,12 @@ def test_a_write_that_fails_leaves_no_partial_dataset(random_episodes, monkeypat
 
     with pytest.raises(KeyboardInterrupt):
         write_dataset("test/cut-v0", cut_short(), {"task": TASK})
+    assert not list_datasets()
+    with pytest.raises(KeptOnInterrupt) as stopped:  # what `collect` asks for: the finished episodes are kept
+        write_dataset("test/kept-v0", cut_short(), {"task": TASK}, keep_on_interrupt=True)
+    assert stopped.value.dataset.total_episodes == 1 and list(list_datasets()) == ["test/kept-v0"]
+    assert hauwm_metadata(open_dataset("test/kept-v0"))["task"] == TASK
+    shutil.rmtree(datasets_root / "test" / "kept-v0")
     update_metadata = minari.dataset.minari_storage.MinariStorage.update_metadata
 
     def full_at_the_end(storage, metadata: dict) -> None:  # the disk fills as our metadata goes in, after every episode
