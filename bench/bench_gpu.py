@@ -28,12 +28,14 @@ Shards: built from `hauwm shards sample-data --clips 344` in a temporary directo
 from __future__ import annotations
 
 import argparse
+import atexit
 import gc
 import json
 import logging
 import math
 import os
 import resource
+import shutil
 import statistics
 import sys
 import tempfile
@@ -227,7 +229,7 @@ def main() -> None:
     parser.add_argument("--fit-steps", type=int, default=None, help="fit steps, long epochs (GPU: 500; CPU: 80)")
     parser.add_argument("--workers", type=int, default=None, help="fit DataLoader workers (GPU: 4; CPU: 2)")
     parser.add_argument("--worker-priority", choices=WORKER_PRIORITIES, default=None,
-                        help="fit workers' scheduling (default: the config's: normal for ssv2.yaml, idle for tiny.yaml)")
+                        help="fit workers' scheduling (default: the config's, normal in every shipped config)")
     parser.add_argument("--precision", default=None, help="default: the config's (16-mixed on GPU, 32-true on CPU)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--log-every", type=int, default=None, help="fit's log_every_n_steps (default: the config's)")
@@ -270,7 +272,8 @@ def main() -> None:
           f"{loaded['model'].get('compile', 'off')}, {workers} workers ({worker_priority} priority), "
           f"log every {log_every} steps; "
           f"{torch.get_num_threads()} torch threads; lightning {L.__version__}", flush=True)
-    work = Path(tempfile.mkdtemp(prefix="bench-gpu-"))
+    work = Path(tempfile.mkdtemp(prefix="bench-gpu-"))  # sample shards and the fits' checkpoints
+    atexit.register(shutil.rmtree, work, ignore_errors=True)
     started = time.perf_counter()
     shards = args.shards or sample_shards(work)
     print(f"shards: {shards} ({time.perf_counter() - started:.0f} s)", flush=True)

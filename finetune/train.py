@@ -164,7 +164,7 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str, device: torch.
                                 f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
     if state["export_sha256"] != fingerprint:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
-                            "pass the same export or use another --logdir")
+                            "pass the export it was trained on (or, to train anew, another --logdir)")
     return state
 
 
@@ -281,7 +281,9 @@ def close_window(window: dict, updates: int) -> dict[str, float]:
 @contextlib.contextmanager
 def exclusive(logdir: Path) -> Iterator[None]:
     """Hold an exclusive lock on `logdir` (released when the run ends, also if it is killed): two runs
-    writing one run directory would interleave their replay files and overwrite each other's checkpoint."""
+    writing one run directory would interleave their replay files and overwrite each other's checkpoint. A directory
+    this run made and left with nothing but the lock (a run refused before it wrote anything) is removed again."""
+    made = not logdir.exists()
     logdir.mkdir(parents=True, exist_ok=True)
     with open(logdir / LOCK, "a+") as lock:
         try:
@@ -293,7 +295,12 @@ def exclusive(logdir: Path) -> Iterator[None]:
         lock.truncate(0)
         lock.write(str(os.getpid()))
         lock.flush()
-        yield
+        try:
+            yield
+        finally:
+            if made and [path.name for path in logdir.iterdir()] == [LOCK]:
+                (logdir / LOCK).unlink()
+                logdir.rmdir()
 
 
 @dataclasses.dataclass(frozen=True)

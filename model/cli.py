@@ -201,13 +201,13 @@ def analyze_command(argv: list[str]) -> int:
                         help="an export directory (`hauwm pretrain export`); give two to compare, e.g. with and without HCU")
     parser.add_argument("--shards", type=Path, required=True, help="shard directory with a validation split")
     parser.add_argument("--out", type=Path, required=True, help="directory for the PNG plots and figures.json")
-    parser.add_argument("--split", default="validation")
+    parser.add_argument("--split", default="validation", help="the shards' split to evaluate on (default validation)")
     parser.add_argument("--batches", type=int, default=8, help="held-out batches to average over")
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--seq-len", type=int, default=12)
+    parser.add_argument("--batch-size", type=int, default=8, help="sequences per batch (default 8)")
+    parser.add_argument("--seq-len", type=int, default=12, help="frames per sampled sequence (default 12)")
     parser.add_argument("--k-max", type=int, default=None, help="largest gap k (default: the first model's training K_max)")
     parser.add_argument("--heads", type=int, default=4, help="ensemble heads shown side by side in the rollout figure")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the sampled sequences and gaps (default 0)")
     args = parser.parse_args(argv)
     for flag, value, least in (("--batches", args.batches, 1), ("--heads", args.heads, 1), ("--batch-size", args.batch_size, 1),
                                ("--seq-len", args.seq_len, 2),  # a rollout needs a frame to see and one to imagine

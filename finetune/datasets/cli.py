@@ -1,7 +1,7 @@
 """`hauwm datasets`: collect, merge, inspect and list Minari datasets of 64x64 pixel episodes (offline RL).
 
     hauwm datasets collect --task metaworld_drawer_close --policy expert --episodes 50 --dataset-id hauwm/drawer_close-expert-v0
-    hauwm datasets collect --task metaworld_drawer_close --policy expert --action-noise 0.5 --episodes 50 --dataset-id hauwm/drawer_close-medium-v0
+    hauwm datasets collect --task metaworld_dial_turn --policy expert --action-noise 0.5 --episodes 50 --dataset-id hauwm/dial_turn-noisy-v0
     hauwm datasets collect --task metaworld_drawer_close --policy random --episodes 50 --dataset-id hauwm/drawer_close-random-v0
     hauwm datasets collect --policy agent --checkpoint RUNDIR [--best] [--pretrained DIR] --episodes 50 --dataset-id hauwm/drawer_close-agent-v0
     hauwm datasets collect --from-run RUNDIR --dataset-id hauwm/drawer_close-medium_replay-v0
@@ -42,7 +42,8 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--from-run", metavar="RUNDIR", help="take the replay episodes of a `hauwm finetune` run instead")
     c.add_argument("--episodes", type=int, help="episodes to play (with --from-run: at most this many, oldest first)")
     c.add_argument("--action-noise", type=float, default=0.0, metavar="SIGMA",
-                   help="expert: add N(0, SIGMA^2) to every action dimension, clipped to [-1, 1] (medium-quality data)")
+                   help="expert: add N(0, SIGMA^2) to every action dimension, clipped to [-1, 1] (barely hurts the "
+                        "drawer-close expert: for medium data use --policy agent or --from-run, docs/datasets.md)")
     c.add_argument("--checkpoint", metavar="RUNDIR", help="agent: the `hauwm finetune` run directory to play")
     c.add_argument("--best", action="store_true", help="agent: play the run's best.pt (its best evaluation's agent) "
                                                        "instead of its last checkpoint")
@@ -52,7 +53,7 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=int, default=0, help="env seed (initial states, goals) and action-noise seed")
     c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help=f"env setting, one of {', '.join(ENV_SETTINGS)}; e.g. --set fast_render=true --set time_limit=100")
-    c.add_argument("--jpeg", action="store_true", help="store frames as Minari's JPEG (quality 75, 4:2:0): about 5x "
+    c.add_argument("--jpeg", action="store_true", help="store frames as Minari's JPEG (quality 75, 4:2:0): about 7x "
                    "smaller than the default raw frames, but lossy (docs/datasets.md)")
     c.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
 

@@ -303,9 +303,9 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
     Episodes are appended one at a time as `episodes` yields them (a generator never holds the dataset in
     memory); if anything fails on the way, the partial dataset is deleted. With `keep_on_interrupt`, Ctrl-C while
     `episodes` makes the next episode keeps those written as the dataset and raises KeptOnInterrupt (collecting
-    them may have taken hours; a merge, whose part would be a misleading dataset, does not keep them). Frames are stored raw (lossless)
-    unless `jpeg`: Minari's JPEG (Pillow, quality 75, 4:2:0 chroma) is about 5x smaller but changes a
-    64x64 Meta-World frame by ~6 grey levels on average (docs/datasets.md). `metadata` (our settings: task,
+    them may have taken hours; a merge, whose part would be a misleading dataset, does not keep them). Frames are
+    stored raw (lossless) unless `jpeg`: Minari's JPEG (Pillow, quality 75, 4:2:0 chroma) is about 7x smaller but
+    changes a 64x64 Meta-World frame by ~6 grey levels on average (docs/datasets.md). `metadata` (our settings: task,
     source, env settings) is stored under the "hauwm" key of the dataset's metadata.json; Table 4's random
     and expert returns become Minari's ref_min_score / ref_max_score where the task has them.
     """

@@ -156,6 +156,8 @@ def test_a_run_directory_in_use_is_refused(export_dir, tmp_path, capsys):
         assert main(run) == 2
         assert "is in use by another run" in capsys.readouterr().err
         assert not (logdir / CHECKPOINT).exists()
+    assert not logdir.exists()  # made for the lock alone, so removed again, as after any run refused at its start
+    assert main(run + ["--set", "seq_len=64"]) == 2 and not logdir.exists()
     assert main(run) == 0  # free again once that run ends
 
 
