@@ -29,7 +29,9 @@ import torch._inductor.config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.args import duration, task_name  # noqa: E402
 from bench.machine import describe_machine  # noqa: E402
+from data_pipeline.cli import at_least  # noqa: E402
 from finetune import load_pretrained  # noqa: E402
 from finetune.agent import Agent  # noqa: E402
 from finetune.config import FinetuneConfig  # noqa: E402
@@ -128,17 +130,17 @@ def main() -> None:
     parser.add_argument("--compile", default=None, choices=["off", "default", "reduce-overhead"],
                         help="compiled mode to compare with eager (default: reduce-overhead on cuda, default on cpu)")
     parser.add_argument("--conv-bf16", action="store_true", help="also time eager updates with conv_bf16")
-    parser.add_argument("--updates", type=int, default=None, help="timed updates (default: 20 on cuda, 2 on cpu)")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument("--act-batches", nargs="*", type=int, default=None, help="frames per act call (default 1 4 8)")
-    parser.add_argument("--task", default=None, help="env for the env section (default: dmc_cheetah_run on cuda, "
+    parser.add_argument("--updates", type=at_least(1), default=None, help="timed updates (default: 20 on cuda, 2 on cpu)")
+    parser.add_argument("--threads", type=at_least(1), default=1, help="torch CPU threads")
+    parser.add_argument("--act-batches", nargs="*", type=at_least(1), default=None, help="frames per act call (default 1 4 8)")
+    parser.add_argument("--task", type=task_name, default=None, help="env for the env section (default: dmc_cheetah_run on cuda, "
                                                      "metaworld_drawer_close with fast rendering on cpu)")
-    parser.add_argument("--envs", nargs="*", type=int, default=None, help="env counts (default: 1 4 8 on cuda, 1 2 on cpu)")
+    parser.add_argument("--envs", nargs="*", type=at_least(1), default=None, help="env counts (default: 1 4 8 on cuda, 1 2 on cpu)")
     parser.add_argument("--fast-render", action=argparse.BooleanOptionalAction, default=None,
                         help="fast rendering in the env section (default: off on cuda, on on cpu)")
     parser.add_argument("--pin-envs", action=argparse.BooleanOptionalAction, default=True,
                         help="pin the env workers to CPUs, as training does by default (setting pin_envs)")
-    parser.add_argument("--seconds", type=float, default=10.0, help="time per acting and env measurement")
+    parser.add_argument("--seconds", type=duration, default=10.0, help="time per acting and env measurement")
     args = parser.parse_args()
     device = torch.device(args.device)
     cuda = device.type == "cuda"

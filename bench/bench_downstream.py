@@ -50,6 +50,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import describe_machine  # noqa: E402
+from data_pipeline.cli import at_least  # noqa: E402
 
 TASK = "metaworld_drawer_close"  # without --from-run: Meta-World's scripted expert makes the data free
 ENV = dict(action_repeat=2, time_limit=100, fast_render=True)
@@ -235,8 +236,8 @@ def main() -> int:
     p.add_argument("--pretrained", required=True, help="export of `hauwm pretrain export` (e.g. make demo's)")
     p.add_argument("--logdir", type=Path, default=Path("runs/bench_downstream"))
     p.add_argument("--only", choices=["offline", "imitation"], help="run one paradigm only")
-    p.add_argument("--updates", type=int, default=1500, help="offline updates per run")
-    p.add_argument("--imitation-steps", type=int, default=20_000, help="imitation env steps")
+    p.add_argument("--updates", type=at_least(1), default=1500, help="offline updates per run")
+    p.add_argument("--imitation-steps", type=at_least(1), default=20_000, help="imitation env steps")
     p.add_argument("--lams", type=float, nargs="+", default=[5.0, 0.0],
                    help="λ of eq. 6: one offline run per value (a sweep; LOMPO's default is 5)")
     p.add_argument("--penalty", default="loglik_std", choices=["loglik_std", "max_std", "mean_disagreement"],
@@ -244,22 +245,22 @@ def main() -> int:
                         "named offline_PENALTY_lamλ")
     p.add_argument("--frozen-weights", type=float, nargs="*", default=[],
                    help="extra offline runs at the first of --lams with the frozen disagreement's weight w > 0")
-    p.add_argument("--expert-episodes", type=int, default=20)
-    p.add_argument("--noisy-episodes", type=int, default=40)
+    p.add_argument("--expert-episodes", type=at_least(1), default=20)
+    p.add_argument("--noisy-episodes", type=at_least(1), default=40)
     p.add_argument("--noise", type=float, default=0.5,
                    help="σ of the noisy expert's action noise; another than 0.5 makes its own datasets and offline "
                         "runs (-medexpσ)")
-    p.add_argument("--random-episodes", type=int, default=0,
+    p.add_argument("--random-episodes", type=at_least(0), default=0,
                    help="random-policy episodes added to medexp (its own datasets and runs, -medexp…rN)")
-    p.add_argument("--demos", type=int, default=10, help="expert demonstrations for imitation (≤ 10)")
-    p.add_argument("--eval-episodes", type=int, default=10, help="episodes per evaluation (and per reference)")
+    p.add_argument("--demos", type=at_least(1), default=10, help="expert demonstrations for imitation (≤ 10)")
+    p.add_argument("--eval-episodes", type=at_least(1), default=10, help="episodes per evaluation (and per reference)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of hauwm finetune for every run (e.g. --set entropy_scale=1e-3); use with --tag")
     p.add_argument("--tag", default="", help="suffix of this invocation's run names (a variant made with --set)")
     p.add_argument("--report", action="store_true", help="only print the table of what has run")
     p.add_argument("--runs", nargs="+", help="with --report: these run directories of LOGDIR instead of the planned ones")
-    p.add_argument("--final-episodes", type=int, default=0,
+    p.add_argument("--final-episodes", type=at_least(0), default=0,
                    help="play every run's last checkpoint, its best.pt and the references again for this many episodes")
     p.add_argument("--from-run", type=Path, metavar="RUNDIR",
                    help="a `hauwm finetune` run (e.g. bench_learning.py --gpu's) whose task, replay (the medium part) "
@@ -268,12 +269,24 @@ def main() -> int:
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args()
     from finetune.config import parse_override
+    from finetune.datasets import DatasetError
     from finetune.datasets.sources import run_config
+    from finetune.pretrained import PretrainedError, load_pretrained
+
+    if args.demos > 10:
+        p.error(f"argument --demos: issue 13's check imitates from at most 10 demonstrations, got {args.demos}")
+    try:  # before minutes of collecting datasets
+        load_pretrained(args.pretrained)
+    except PretrainedError as error:
+        p.error(f"argument --pretrained: {error}")
 
     args.sizes = GPU_SETTINGS if args.gpu else CPU_SETTINGS
     args.task, args.env = TASK, ENV
     if args.from_run:
-        source = run_config(args.from_run)
+        try:
+            source = run_config(args.from_run)
+        except DatasetError as error:
+            p.error(f"argument --from-run: {error}")
         args.task, args.env = source.task, source.env_settings
 
     args.logdir.mkdir(parents=True, exist_ok=True)

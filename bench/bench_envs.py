@@ -26,7 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from finetune.envs import PAPER_TASKS, make_env  # noqa: E402  (sets MUJOCO_GL before mujoco loads)
 
+from bench.args import duration, task_name  # noqa: E402
 from bench.machine import describe_machine  # noqa: E402
+from data_pipeline.cli import at_least  # noqa: E402
 
 
 def measure(task: str, fast_render: bool, seconds: float, min_steps: int) -> tuple[float, int, np.ndarray]:
@@ -48,9 +50,10 @@ def measure(task: str, fast_render: bool, seconds: float, min_steps: int) -> tup
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="+", default=list(PAPER_TASKS), help="env names (default: the paper's ten)")
-    parser.add_argument("--seconds", type=float, default=5.0, help="time per task and mode")
-    parser.add_argument("--min-steps", type=int, default=5, help="agent steps per task and mode at least")
+    parser.add_argument("--tasks", nargs="+", type=task_name, default=list(PAPER_TASKS),
+                        help="env names (default: the paper's ten)")
+    parser.add_argument("--seconds", type=duration, default=5.0, help="time per task and mode")
+    parser.add_argument("--min-steps", type=at_least(1), default=5, help="agent steps per task and mode at least")
     args = parser.parse_args()
 
     print(f"machine: {describe_machine()}")

@@ -19,12 +19,15 @@ run never saw), prints:
 
 `--checkpoint best.pt` diagnoses the run's best evaluation's agent instead of its last.
 
-Needs the run's MINARI_DATASETS_PATH (bench_downstream: LOGDIR/minari).
+Reads datasets from MINARI_DATASETS_PATH, by default RUNDIR/../minari where that exists (bench_downstream's
+LOGDIR/minari).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from pathlib import Path
 
@@ -33,10 +36,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from finetune.config import load_config  # noqa: E402
 from finetune.offline import OfflineAgent  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
-from finetune.train import BEST, CHECKPOINT, load_dataset, load_trained  # noqa: E402
+from finetune.pretrained import PretrainedError  # noqa: E402
+from finetune.train import BEST, CHECKPOINT, FinetuneError, load_dataset, load_trained, run_config, task_env  # noqa: E402
 from finetune.world_model import Latent  # noqa: E402
 
 MODEL_METRICS = ("model_loss", "recon_nll", "reward_nll", "kl")
@@ -67,10 +70,11 @@ def imagined_reward_per_step(agent: OfflineAgent, first: Latent, horizon: int,
     return float(agent.world_model.imagine(first, policy, horizon)[1].mean())
 
 
-def windows(dataset_id: str, cfg, action_dim: int, count: int, seed: int) -> list[dict[str, torch.Tensor]]:
-    """`count` replay batches (cfg.batch_size windows of cfg.seq_len steps) of a dataset, as tensors."""
+def windows(dataset_id: str, cfg, action_dim: int, count: int, seed: int, flag: str) -> list[dict[str, torch.Tensor]]:
+    """`count` replay batches (cfg.batch_size windows of cfg.seq_len steps) of a dataset, as tensors; `flag` names
+    the dataset in errors."""
     replay = Replay(None, cfg.replay_capacity, np.random.default_rng(seed))
-    for episode in load_dataset(dataset_id, cfg, action_dim, "--heldout"):
+    for episode in load_dataset(dataset_id, cfg, action_dim, flag):
         replay.add(episode)
     return [{key: torch.as_tensor(value) for key, value in replay.sample(cfg.batch_size, cfg.seq_len).items()}
             for _ in range(count)]
@@ -109,20 +113,23 @@ def main() -> int:
     p.add_argument("--batches", type=int, default=8)
     p.add_argument("--checkpoint", default=CHECKPOINT, choices=[CHECKPOINT, BEST], help="the last checkpoint or best.pt")
     args = p.parse_args()
+    if (args.run.parent / "minari").is_dir():  # bench_downstream's layout: LOGDIR/RUN beside LOGDIR/minari
+        os.environ.setdefault("MINARI_DATASETS_PATH", str(args.run.parent / "minari"))
     torch.set_num_threads(1)
-    cfg = load_config(args.run / "config.yaml", {"device": "cpu"})
-    if cfg.paradigm != "offline":
-        sys.exit(f"{args.run}: an offline run is needed, this one is {cfg.paradigm!r}")
-    from finetune.envs import make_env
-
-    env = make_env(cfg.task, seed=cfg.seed, **cfg.env_settings)
-    action_dim = env.action_space.shape[0]
-    env.close()
-    cfg, agent, counters = load_trained(args.run, args.pretrained, action_dim, checkpoint=args.checkpoint)
-    print(f"{args.run / args.checkpoint} at {counters['updates']} updates: penalty {cfg.penalty}, λ {cfg.penalty_scale:g}; "
-          f"{args.batches} batches of {cfg.batch_size} × {cfg.seq_len} per dataset")
-    results = {"training dataset": diagnose(agent, windows(cfg.dataset, cfg, action_dim, args.batches, 1)),
-               "held-out": diagnose(agent, windows(args.heldout, cfg, action_dim, args.batches, 2))}
+    try:
+        cfg = run_config(args.run, {"device": "cpu"})
+        if cfg.paradigm != "offline":
+            raise FinetuneError(f"{args.run}: an offline run is needed, this one is {cfg.paradigm!r}")
+        with contextlib.closing(task_env(cfg, cfg.seed)) as env:
+            action_dim = env.action_space.shape[0]
+        cfg, agent, counters = load_trained(args.run, args.pretrained, action_dim, checkpoint=args.checkpoint)
+        print(f"{args.run / args.checkpoint} at {counters['updates']} updates: penalty {cfg.penalty}, "
+              f"λ {cfg.penalty_scale:g}; {args.batches} batches of {cfg.batch_size} × {cfg.seq_len} per dataset")
+        results = {"training dataset": diagnose(agent, windows(cfg.dataset, cfg, action_dim, args.batches, 1,
+                                                               "the run's dataset (RUNDIR/config.yaml)")),
+                   "held-out": diagnose(agent, windows(args.heldout, cfg, action_dim, args.batches, 2, "--heldout"))}
+    except (FinetuneError, PretrainedError) as error:
+        p.exit(2, f"{p.prog}: error: {error}\n")
     names = list(next(iter(results.values())))
     print(f"{'':<34}" + "".join(f"{name:>20}" for name in results))
     for name in names:

@@ -12,6 +12,7 @@ its ratio to the bare loop, the peak memory of the build's main process and of i
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import shutil
 import subprocess
@@ -24,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.machine import describe_machine  # noqa: E402
+from data_pipeline.cli import at_least  # noqa: E402
 from data_pipeline.decode import decode_clip  # noqa: E402
 from data_pipeline.sample_data import make_sample_data  # noqa: E402
 from data_pipeline.ssv2 import load_split  # noqa: E402
@@ -67,10 +69,13 @@ def bare_loop(data: Path) -> tuple[float, float, int, int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--clips", type=int, default=64, help="sample clips to generate (3/4 go to train)")
+    parser.add_argument("--clips", type=at_least(8), default=64,
+                        help="sample clips to generate (3/4 go to train; a quarter of those is the smaller build)")
     parser.add_argument("--keep", type=Path, default=None, help="keep the sample data and shards here")
     args = parser.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench-shards-"))
+    if args.keep is None:
+        atexit.register(shutil.rmtree, work, ignore_errors=True)
     data = work / "ssv2"
     if not (data / "annotations").is_dir():
         make_sample_data(data, args.clips, workers=2)

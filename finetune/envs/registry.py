@@ -54,6 +54,17 @@ def _suite(name: str) -> ModuleType:
     return importlib.import_module(_SUITE_MODULES[prefix])
 
 
+def check_task(name: str) -> tuple[ModuleType, dict]:
+    """(its suite's module, the suite's tasks) for a task `name`; a ValueError listing the valid names otherwise."""
+    suite = _suite(name)
+    tasks = suite.tasks()
+    if name not in tasks:
+        raise ValueError(
+            f"unknown environment {name!r}. Valid {name.split('_', 1)[0]} names: {', '.join(sorted(tasks))}"
+        )
+    return suite, tasks
+
+
 def make_env(
     name: str,
     seed: int,
@@ -69,12 +80,7 @@ def make_env(
     `fast_render` turns off shadows, reflections and multisampling (see `rendering.py`).
     """
     check_rendering()  # a MUJOCO_GL the user set must be able to draw a frame: once per process tree
-    suite = _suite(name)
-    tasks = suite.tasks()
-    if name not in tasks:
-        raise ValueError(
-            f"unknown environment {name!r}. Valid {name.split('_', 1)[0]} names: {', '.join(sorted(tasks))}"
-        )
+    suite, tasks = check_task(name)
     if action_repeat is None:
         action_repeat = suite.DEFAULT_ACTION_REPEAT
     if time_limit is None:
