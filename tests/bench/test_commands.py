@@ -1,6 +1,6 @@
 """The bench scripts start, and the GPU session's first commands run end to end on the CPU.
 
-A GPU is lent to few sessions and for 30 minutes: `bench/bench_gpu.py` and `bench/bench_agent.py --device cuda`
+A GPU is lent to few sessions and for 15 minutes: `bench/bench_gpu.py` and `bench/bench_agent.py --device cuda`
 are what such a session runs first (bench/README.md), so a script that no longer imports must be caught here,
 not there. The figures themselves are bench output, never asserted (they depend on the machine).
 """
