@@ -183,6 +183,24 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
     return dict(state["counters"])
 
 
+# what a resume may change: the budget, the evaluation, logging and checkpoint cadence, and how the run computes
+# (none of these changes what is learned, beyond rounding); any other setting stays as the run began
+RESUMABLE = ("steps", "logdir", "eval_every", "eval_episodes", "log_every", "checkpoint_every", "device", "threads",
+             "compile", "conv_bf16", "num_envs", "pin_envs")
+
+
+def refuse_changed_settings(cfg: FinetuneConfig) -> None:
+    """A FinetuneError if `cfg` resumes its run with a setting (outside RESUMABLE) other than the one it began with:
+    part of the run would have learned with one value and part with another, and config.yaml keeps only the last."""
+    before = dataclasses.asdict(run_config(cfg.logdir))
+    changed = [f"{key}={value!r} (asked: {getattr(cfg, key)!r})" for key, value in before.items()
+               if key not in RESUMABLE and value != getattr(cfg, key)]
+    if changed:
+        raise FinetuneError(f"{cfg.logdir} was trained with {', '.join(changed[:3])}: a resume goes on with the settings "
+                            f"the run began with (only {', '.join(RESUMABLE)} may change); drop the change, or train "
+                            "in another --logdir")
+
+
 def run_config(logdir: str | Path, overrides: dict[str, object] | None = None) -> FinetuneConfig:
     """The FinetuneConfig a `hauwm finetune` run wrote to LOGDIR/config.yaml, with `overrides` and, for the settings
     the run predates, the values it ran with (settings_before_they_existed); a FinetuneError if there is none or
@@ -351,6 +369,7 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
     checkpoint = Path(cfg.logdir) / CHECKPOINT
     if checkpoint.exists():
         counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng)
+        refuse_changed_settings(cfg)
     best = Path(cfg.logdir) / BEST
     if best.exists():  # a run stopped between keeping an evaluation and its next checkpoint: its best.pt is better
         #                than the checkpoint's counters know, and a worse evaluation must not replace it on resume

@@ -99,6 +99,12 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert (logdir / BEST).read_bytes() == kept_bytes
     assert torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]["best_return"] == 1e9
 
+    # a resume goes on with what the run learns with; its budget, cadence and speed settings may change
+    assert main(args + ["--steps", "320", "--set", "horizon=7", "--set", "eval_episodes=2"]) == 2
+    assert "was trained with horizon=5 (asked: 7): a resume goes on with the settings" in capsys.readouterr().err
+    assert "horizon: 5" in (logdir / "config.yaml").read_text()
+    assert main(args + ["--steps", "320", "--set", "eval_episodes=2", "--set", "checkpoint_every=50"]) == 0
+
     (logdir / BEST).write_bytes(kept_bytes[:100])  # damaged: named, not a traceback, at resume and after a run
     assert main(args + ["--steps", "360"]) == 2
     assert f"{logdir / BEST} cannot be read (it is truncated" in (err := capsys.readouterr().err) and "move it away" in err
