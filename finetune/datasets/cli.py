@@ -15,6 +15,7 @@ Datasets live under $MINARI_DATASETS_PATH (Minari's own variable; default ~/.min
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import re
 import sys
@@ -190,10 +191,16 @@ def inspect(args: argparse.Namespace) -> None:
     if args.task and args.task not in REFERENCE_RETURNS:
         raise DatasetError(f"--task {args.task} has no Table 4 references to normalise returns with; the paper's tasks: "
                            f"{', '.join(REFERENCE_RETURNS)}")
+    action_dim = None
+    if args.task:  # a dataset made elsewhere: its actions must fit the task whose references normalise it
+        from finetune.envs import make_env
+
+        with contextlib.closing(make_env(args.task, seed=0)) as env:
+            action_dim = env.action_space.shape[0]
     task = args.task or settings.get("task")
     with_success = has_success(dataset)
     summary = Summary(task)
-    for episode in iterate_episodes(args.dataset_id, progress=not args.no_progress):
+    for episode in iterate_episodes(args.dataset_id, task, action_dim, progress=not args.no_progress):
         if not with_success:
             episode.pop("success")
         summary.add(episode)

@@ -222,8 +222,10 @@ def test_images_are_found_and_resized_or_refused(capsys):
     (episode,) = load_episodes("other/chw84-v0", action_dim=4, progress=False)
     assert episode["obs"].shape == (steps + 1, 3, 64, 64) and (episode["obs"] == 200).all()  # INTER_AREA resize
     assert episode["success"].shape == (steps + 1,) and not episode["success"].any()  # no success in this suite
-    assert main(["inspect", "other/chw84-v0", "--task", "dmc_cheetah_run", "--no-progress"]) == 0  # made elsewhere
-    assert "task            dmc_cheetah_run" in capsys.readouterr().out
+    assert main(["inspect", "other/chw84-v0", "--task", TASK, "--no-progress"]) == 0  # made elsewhere: 4-dim actions
+    assert f"task            {TASK}" in capsys.readouterr().out
+    assert main(["inspect", "other/chw84-v0", "--task", "dmc_cheetah_run", "--no-progress"]) == 2  # not its task
+    assert "actions have 4 dimensions, dmc_cheetah_run has 6" in capsys.readouterr().err
     assert main(["inspect", "other/chw84-v0", "--task", "cheetah"]) == 2
     assert "--task cheetah has no Table 4 references" in capsys.readouterr().err
 
