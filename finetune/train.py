@@ -299,9 +299,10 @@ def close_window(window: dict, updates: int) -> dict[str, float]:
 @contextlib.contextmanager
 def exclusive(logdir: Path) -> Iterator[None]:
     """Hold an exclusive lock on `logdir` (released when the run ends, also if it is killed): two runs
-    writing one run directory would interleave their replay files and overwrite each other's checkpoint. A directory
-    this run made and left with nothing but the lock (a run refused before it wrote anything) is removed again."""
-    made = not logdir.exists()
+    writing one run directory would interleave their replay files and overwrite each other's checkpoint. A run that
+    wrote nothing but its lock (one refused at its start) leaves no trace: the lock and the directories it made go."""
+    made = [directory for directory in (logdir, *logdir.parents) if not directory.exists()]  # deepest first
+    lock_made = not (logdir / LOCK).exists()
     logdir.mkdir(parents=True, exist_ok=True)
     with open(logdir / LOCK, "a+") as lock:
         try:
@@ -316,9 +317,11 @@ def exclusive(logdir: Path) -> Iterator[None]:
         try:
             yield
         finally:
-            if made and [path.name for path in logdir.iterdir()] == [LOCK]:
+            if lock_made and [path.name for path in logdir.iterdir()] == [LOCK]:
                 (logdir / LOCK).unlink()
-                logdir.rmdir()
+                for directory in made:
+                    with contextlib.suppress(OSError):  # another process has written there meanwhile: it stays
+                        directory.rmdir()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -164,6 +164,10 @@ def test_a_run_directory_in_use_is_refused(export_dir, tmp_path, capsys):
         assert not (logdir / CHECKPOINT).exists()
     assert not logdir.exists()  # made for the lock alone, so removed again, as after any run refused at its start
     assert main(run + ["--set", "seq_len=64"]) == 2 and not logdir.exists()
+    deeper = tmp_path / "new" / "deeper"
+    assert main(run + ["--set", "seq_len=64", "--logdir", str(deeper)]) == 2 and not (tmp_path / "new").exists()
+    logdir.mkdir()
+    assert main(run + ["--set", "seq_len=64"]) == 2 and not any(logdir.iterdir())  # an empty one stays as it was
     assert main(run) == 0  # free again once that run ends
 
 
