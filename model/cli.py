@@ -124,7 +124,11 @@ def lightning_cli(args: list[str]):
                 raise ConfigError("no shard directory: pass --data.shards DIR (built by `hauwm shards build`)")
             refuse_other_frame_size(config.data.shards, "--data.shards")  # and a missing or unfinished directory
             if config.ckpt_path and not Path(config.ckpt_path).is_file():
-                raise ConfigError(f"--ckpt_path {config.ckpt_path} does not exist")
+                raise ConfigError(f"--ckpt_path {config.ckpt_path} does not exist: pass a checkpoint file, or `last` "
+                                  "for the run's newest (e.g. RUN/checkpoints/last.ckpt)")
+            if self.subcommand == "validate" and not config.ckpt_path:
+                print("hauwm pretrain validate: no --ckpt_path, so this scores a freshly initialised model",
+                      file=sys.stderr)
             trainer = config.trainer
             if trainer.accelerator in ("gpu", "cuda") and not torch.cuda.is_available():
                 raise ConfigError(f"trainer.accelerator is {trainer.accelerator} and no CUDA GPU is visible: for a (slow) "

@@ -13,7 +13,17 @@ import time
 from pathlib import Path
 
 import lightning
+import torch
 from lightning.pytorch.callbacks import Callback, TQDMProgressBar
+
+
+def saved_step(checkpoint: Path) -> str:
+    """The optimizer step a Lightning checkpoint was saved at ("?" if it cannot be read), read without loading its
+    tensors (mmap): the steps after it are trained again on resume."""
+    try:
+        return str(torch.load(checkpoint, map_location="cpu", weights_only=True, mmap=True)["global_step"])
+    except Exception:  # the notice must not fail while a run stops; the path is what matters
+        return "?"
 
 
 class FitInterrupted(Exception):
@@ -38,5 +48,6 @@ class ResumeNotice(Callback):
         last = Path(checkpoint.last_model_path or checkpoint.best_model_path) if checkpoint else Path()
         where = "no checkpoint was written yet"  # Path() is ".", never a file
         if last.is_file():
-            where = f"resume with --ckpt_path {last} (written {time.strftime('%H:%M:%S', time.localtime(last.stat().st_mtime))})"
+            written = time.strftime("%H:%M:%S", time.localtime(last.stat().st_mtime))
+            where = f"resume with --ckpt_path {last} (step {saved_step(last)}, written {written})"
         print(f"hauwm pretrain fit: interrupted at step {trainer.global_step}; {where}", file=sys.stderr)

@@ -373,7 +373,8 @@ def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
         values = {s[key] for s in settings if key in s}
         if len(values) > 1:
             described = ", ".join(f"{i} has {s.get(key)!r}" for i, s in zip(source_ids, settings))
-            raise DatasetError(f"cannot merge datasets with different {key}: {described}")
+            raise DatasetError(f"cannot merge datasets with different {key}: {described}; merge datasets collected "
+                               f"with the same {key}")
     action_dims = {dataset.action_space.shape for dataset in datasets}
     if len(action_dims) > 1:
         raise DatasetError(f"cannot merge datasets with different action shapes {sorted(action_dims)}: "

@@ -35,7 +35,8 @@ def test_ctrl_c_names_the_checkpoint_to_resume_from(tmp_path, capsys, bar):
         trainer.fit(Regression())
     assert notice.interrupted
     last = tmp_path / "checkpoints" / "last.ckpt"
-    assert f"hauwm pretrain fit: interrupted at step 3; resume with --ckpt_path {last} (written " in capsys.readouterr().err
+    assert f"hauwm pretrain fit: interrupted at step 3; resume with --ckpt_path {last} (step 2, written " in \
+        capsys.readouterr().err
     assert torch.load(last, weights_only=False)["global_step"] == 2
 
 
