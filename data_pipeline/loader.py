@@ -286,6 +286,7 @@ def check_worker_priority(priority: str) -> None:
 def _init_worker(priority: str, _: int) -> None:
     import cv2
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle; it stops the workers
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
     if priority == "idle":

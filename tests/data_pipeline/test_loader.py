@@ -5,6 +5,7 @@ resume position, and the LightningDataModule around it."""
 import json
 import multiprocessing
 import os
+import signal
 import tarfile
 from collections import Counter
 
@@ -155,6 +156,21 @@ def test_worker_priority_sets_the_workers_scheduling_class(built_shards, priorit
     assert {os.sched_getscheduler(pid) for pid in workers} == {getattr(os, scheduler)}
     assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the training process keeps its class
     del batches, loader
+
+
+def test_ctrl_c_is_left_to_the_training_process(built_shards):
+    """A terminal's Ctrl-C reaches every process of the group; the workers leave it to the training process, which
+    stops them (a worker interrupted mid-shutdown printed a traceback)."""
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=2)
+    before = frozenset(worker_pids())
+    batches = iter(make_dataloader(dataset))
+    next(batches), next(batches)  # a batch from each worker: both have run their init
+    workers = worker_pids(before)
+    for pid in workers:
+        os.kill(pid, signal.SIGINT)
+    next(batches), next(batches)  # both still serve
+    assert worker_pids(before) == workers
+    del batches
 
 
 @pytest.mark.parametrize(("settings", "message"), [
