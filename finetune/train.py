@@ -168,10 +168,31 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str, device: torch.
     return state
 
 
+# what a resume may change: the budget, the evaluation, logging and checkpoint cadence, and how the run computes
+# (none of these changes what is learned, beyond rounding); any other setting stays as the run began
+RESUMABLE = ("steps", "logdir", "eval_every", "eval_episodes", "log_every", "checkpoint_every", "device", "threads",
+             "compile", "conv_bf16", "num_envs", "pin_envs")
+
+
+def refuse_changed_settings(cfg: FinetuneConfig, written: dict[str, object], path: Path) -> None:
+    """A FinetuneError if `cfg` resumes the checkpoint at `path` (trained with the settings `written`) with a setting
+    outside RESUMABLE changed: part of the run would have learned with one value and part with another, and
+    config.yaml keeps only the last. A setting the checkpoint predates is not compared."""
+    changed = [f"{key}={value!r} (asked: {getattr(cfg, key)!r})" for key, value in written.items()
+               if key not in RESUMABLE and hasattr(cfg, key) and value != getattr(cfg, key)]
+    if changed:
+        raise FinetuneError(f"{path} was trained with {', '.join(changed[:3])}: a resume goes on with the settings "
+                            f"the run began with (only {', '.join(RESUMABLE)} may change); drop the change, or train "
+                            "in another --logdir")
+
+
 def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
-                    rng: np.random.Generator | None = None) -> dict[str, float]:
-    """Restore `agent` (weights, optimizers), torch's and `rng`'s states from `path`; -> its counters."""
+                    rng: np.random.Generator | None = None, resuming: bool = False) -> dict[str, float]:
+    """Restore `agent` (weights, optimizers), torch's and `rng`'s states from `path`; -> its counters. `resuming`:
+    `cfg` goes on training it, so only RESUMABLE settings may differ from those it was trained with."""
     state = read_state(path, cfg, fingerprint, agent.device)
+    if resuming:
+        refuse_changed_settings(cfg, state["config"], path)
     missing, unexpected = agent.load_state_dict(state["agent"], strict=False)
     missing = [k for k in missing if not k.startswith("world_model.frozen.")]
     if missing or unexpected:
@@ -181,24 +202,6 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
     if rng is not None and "replay_rng" in state:
         rng.bit_generator.state = state["replay_rng"]
     return dict(state["counters"])
-
-
-# what a resume may change: the budget, the evaluation, logging and checkpoint cadence, and how the run computes
-# (none of these changes what is learned, beyond rounding); any other setting stays as the run began
-RESUMABLE = ("steps", "logdir", "eval_every", "eval_episodes", "log_every", "checkpoint_every", "device", "threads",
-             "compile", "conv_bf16", "num_envs", "pin_envs")
-
-
-def refuse_changed_settings(cfg: FinetuneConfig) -> None:
-    """A FinetuneError if `cfg` resumes its run with a setting (outside RESUMABLE) other than the one it began with:
-    part of the run would have learned with one value and part with another, and config.yaml keeps only the last."""
-    before = dataclasses.asdict(run_config(cfg.logdir))
-    changed = [f"{key}={value!r} (asked: {getattr(cfg, key)!r})" for key, value in before.items()
-               if key not in RESUMABLE and value != getattr(cfg, key)]
-    if changed:
-        raise FinetuneError(f"{cfg.logdir} was trained with {', '.join(changed[:3])}: a resume goes on with the settings "
-                            f"the run began with (only {', '.join(RESUMABLE)} may change); drop the change, or train "
-                            "in another --logdir")
 
 
 def run_config(logdir: str | Path, overrides: dict[str, object] | None = None) -> FinetuneConfig:
@@ -371,8 +374,7 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
     fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
     checkpoint = Path(cfg.logdir) / CHECKPOINT
     if checkpoint.exists():
-        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng)
-        refuse_changed_settings(cfg)
+        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng, resuming=True)
     best = Path(cfg.logdir) / BEST
     if best.exists():  # a run stopped between keeping an evaluation and its next checkpoint: its best.pt is better
         #                than the checkpoint's counters know, and a worse evaluation must not replace it on resume
