@@ -17,13 +17,6 @@ from pathlib import Path
 import yaml
 
 PARADIGMS = ("online", "offline", "imitation")
-
-
-def step_unit(paradigm: str) -> tuple[str, str]:
-    """What a paradigm's `steps` and cadences count, as (its words, its counters' key): offline RL never acts, so it
-    counts gradient updates; online RL and imitation count env steps."""
-    return ("update", "updates") if paradigm == "offline" else ("env step", "env_step")
-
 PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
 # settings that take one of a few words
 CHOICES: dict[str, tuple[str, ...]] = {
@@ -144,6 +137,13 @@ class FinetuneConfig:
 
 
 WHERE_CONFIGS_ARE = "the configs are in configs/finetune/, configs/offline/ and configs/imitation/"
+
+
+def step_unit(paradigm: str) -> tuple[str, str]:
+    """What a paradigm's `steps` and cadences count, as (its words, its counters' key): offline RL never acts, so it
+    counts gradient updates; online RL and imitation count env steps."""
+    return ("update", "updates") if paradigm == "offline" else ("env step", "env_step")
+
 
 
 class UniqueKeyLoader(yaml.SafeLoader):
