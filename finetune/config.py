@@ -145,7 +145,6 @@ def step_unit(paradigm: str) -> tuple[str, str]:
     return ("update", "updates") if paradigm == "offline" else ("env step", "env_step")
 
 
-
 class UniqueKeyLoader(yaml.SafeLoader):
     """yaml.safe_load's loader, except that a key written twice in one mapping is an error (YAML itself keeps the
     last: a second `task:` further down a config would silently train another task)."""
