@@ -153,7 +153,7 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str, device: torch.
     """What save_checkpoint wrote to `path` (checkpoint.pt or best.pt), checked to be of this run: the same export
     and the settings that shape the agent; a FinetuneError naming the file (and `remedy` if it cannot be read)."""
     try:
-        state = torch.load(path, map_location=device, weights_only=True)
+        state = torch.load(path, map_location=device, weights_only=True, mmap=True)  # best.pt at start: counters only
     except Exception as err:
         raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): {remedy}") from None
     before = settings_before_they_existed(cfg.paradigm)
