@@ -388,7 +388,7 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
 
 def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hooks: LoopHooks = LoopHooks()) -> dict[str, float]:
     """The loop itself, in a run directory this process holds the lock of."""
-    from finetune.envs.vector import make_vector_env
+    from finetune.envs.vector import EnvWorkerError, make_vector_env
 
     logdir = Path(cfg.logdir)
     probe = task_env(cfg, cfg.seed)
@@ -415,7 +415,11 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     eval_env = task_env(cfg, cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]))
     replay.load()
     logger = Logger(logdir)
-    with contextlib.closing(make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)) as envs:
+    try:
+        envs = make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)
+    except EnvWorkerError as error:
+        raise FinetuneError(f"task {cfg.task!r}: {error}") from None
+    with contextlib.closing(envs):
         return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, logdir / CHECKPOINT, fingerprint,
                     progress, hooks.reseed)
 

@@ -9,7 +9,11 @@
   core at once, also while the learner trains (`step_async`, then `step_wait`). Workers are started
   with the "forkserver" context ("spawn" where there is none): MuJoCo's OpenGL contexts, CUDA and
   threads do not survive `fork`; the fork server imports the suite's modules once, so each worker starts
-  from a process that has them already. Frames come back through shared memory.
+  from a process that has them already — except under `MUJOCO_GL=egl`, where importing dm_control opens
+  an EGL display: every worker forked from a server holding one failed to make its context
+  (`EGL_BAD_ALLOC`, seen on an H200), so there each worker imports its suite itself. A worker that
+  cannot build its env says why in one line and the parent raises `EnvWorkerError` naming the task.
+  Frames come back through shared memory.
 - Workers are pinned to CPUs (`pin=True`, the default; Linux), the way Sample Factory pins its rollout
   workers: with N envs on C usable CPUs (`os.sched_getaffinity`), worker i gets CPU i mod C when C
   divides N, and its own block of C/N CPUs when N divides C; otherwise nothing is pinned. Every CPU gets
@@ -30,6 +34,7 @@ import contextlib
 import functools
 import multiprocessing
 import os
+import sys
 import warnings
 
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
@@ -39,21 +44,55 @@ from finetune.envs.registry import _suite, make_env
 START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 
 
+class EnvWorkerError(RuntimeError):
+    """An env worker process could not build its env; the worker's own line on stderr says why."""
+
+
 def make_vector_env(name: str, seeds: list[int], pin: bool = True, **kwargs) -> VectorEnv:
     """`len(seeds)` envs of task `name`, env i built by `make_env(name, seed=seeds[i], **kwargs)`; with more than
     one, their worker processes are pinned to CPUs unless `pin` is false."""
-    env_fns = [functools.partial(make_env, name, seed=seed, **kwargs) for seed in seeds]
-    if len(env_fns) == 1:
-        return SyncVectorEnv(env_fns, autoreset_mode=AutoresetMode.SAME_STEP)
+    if len(seeds) == 1:
+        return SyncVectorEnv([functools.partial(make_env, name, seed=seeds[0], **kwargs)],
+                             autoreset_mode=AutoresetMode.SAME_STEP)
     context = multiprocessing.get_context(START_METHOD)
     if START_METHOD == "forkserver":  # takes effect when the fork server starts (the first vector env of a process)
-        context.set_forkserver_preload(["__main__", "finetune.envs", _suite(name).__name__])
-    envs = AsyncVectorEnv(env_fns, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP)
+        context.set_forkserver_preload(forkserver_preload(name))
+    env_fns = [functools.partial(make_env_in_worker, name, os.getpid(), seed=seed, **kwargs) for seed in seeds]
+    try:
+        envs = AsyncVectorEnv(env_fns, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP)
+    except (EOFError, ConnectionError) as error:  # a worker ended before answering: make_env_in_worker said why
+        raise EnvWorkerError(f"an env worker of {name} could not build its env (its reason is on stderr above: "
+                             f"'env worker of {name} …'); {type(error).__name__} from the worker's pipe") from None
     if pin and hasattr(os, "sched_getaffinity"):  # Linux
         cpu_sets = worker_cpus(len(seeds), sorted(os.sched_getaffinity(0)))
         if cpu_sets is not None:
             pin_workers(envs, cpu_sets)
     return envs
+
+
+def forkserver_preload(name: str) -> list[str]:
+    """The modules the fork server imports for every worker: task `name`'s suite too, unless MUJOCO_GL is egl,
+    where importing dm_control opens an EGL display that no forked worker can make a context on."""
+    modules = ["__main__", "finetune.envs"]
+    if os.environ.get("MUJOCO_GL") != "egl":
+        modules.append(_suite(name).__name__)
+    return modules
+
+
+def make_env_in_worker(name: str, parent_pid: int, seed: int, **kwargs):
+    """`make_env` in an env worker process: a failure ends the worker with one line on stderr instead of a
+    traceback per worker (the parent then raises EnvWorkerError); `os._exit` skips the half-built renderer's
+    finalisers, which would print tracebacks of their own. In the parent (AsyncVectorEnv builds env 0 there
+    too, for its spaces) a failure is raised as usual."""
+    try:
+        return make_env(name, seed=seed, **kwargs)
+    except Exception as error:
+        if os.getpid() == parent_pid:
+            raise
+        reason = " ".join(str(error).split())[:400]  # EGLError's text spans many lines
+        print(f"env worker of {name} (seed {seed}, pid {os.getpid()}): {type(error).__name__}: {reason}",
+              file=sys.stderr, flush=True)
+        os._exit(1)
 
 
 def worker_cpus(num_envs: int, cpus: list[int]) -> list[set[int]] | None:

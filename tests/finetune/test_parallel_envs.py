@@ -13,7 +13,7 @@ import torch
 
 from finetune.config import load_config
 from finetune.envs import make_env, opengl
-from finetune.envs.vector import make_vector_env, worker_cpus
+from finetune.envs.vector import forkserver_preload, make_vector_env, worker_cpus
 from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, train
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
@@ -173,3 +173,41 @@ def test_a_users_mujoco_gl_wins(user_setting):
     code = "import os, finetune.envs; print(os.environ['MUJOCO_GL'], os.environ['PYOPENGL_PLATFORM'])"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
     assert out.split() == [user_setting, user_setting]
+
+
+# Every env worker fails to build its env, as each did with EGL_BAD_ALLOC on an H200 before forkserver_preload: the
+# script's top level runs again in the fork server (a process other than the parent), where it breaks make_env.
+WORKERS_FAIL = """
+import os
+from finetune.envs import vector
+PARENT = os.environ.setdefault("PARENT_PID", str(os.getpid()))
+if str(os.getpid()) != PARENT:
+    def broken(name, seed, **kwargs):
+        raise RuntimeError("EGLError(\\n\\terr = EGL_BAD_ALLOC,\\n\\tbaseOperation = eglCreateContext)")
+    vector.make_env = broken
+if __name__ == "__main__":
+    try:
+        vector.make_vector_env("dmc_cartpole_swingup", [0, 1], fast_render=True, time_limit=3)
+    except vector.EnvWorkerError as error:
+        print(f"refused: {error}")
+"""
+
+
+def test_an_env_worker_that_cannot_build_its_env_ends_with_one_line_and_the_parent_names_the_task(tmp_path):
+    script = tmp_path / "workers_fail.py"
+    script.write_text(WORKERS_FAIL)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")])}
+    result = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("refused: an env worker of dmc_cartpole_swingup could not build its env")
+    assert "Traceback" not in result.stderr
+    reasons = [line for line in result.stderr.splitlines() if line.startswith("env worker of dmc_cartpole_swingup")]
+    assert reasons and all(line.endswith("RuntimeError: EGLError( err = EGL_BAD_ALLOC, baseOperation = eglCreateContext)")
+                           for line in reasons), result.stderr
+
+
+def test_the_fork_server_imports_the_suite_only_where_no_egl_display_comes_with_it(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")
+    assert forkserver_preload("dmc_cartpole_swingup") == ["__main__", "finetune.envs", "finetune.envs.dmc_env"]
+    monkeypatch.setenv("MUJOCO_GL", "egl")  # importing dm_control would open an EGL display in the fork server
+    assert forkserver_preload("dmc_cartpole_swingup") == ["__main__", "finetune.envs"]
