@@ -35,7 +35,7 @@ from data_pipeline.cli import at_least  # noqa: E402
 from finetune import load_pretrained  # noqa: E402
 from finetune.agent import Agent  # noqa: E402
 from finetune.config import FinetuneConfig  # noqa: E402
-from finetune.envs.vector import make_vector_env  # noqa: E402  (sets MUJOCO_GL: the settings line shows the choice)
+from finetune.envs.vector import EnvWorkerError, make_vector_env  # noqa: E402  (sets MUJOCO_GL: the settings line shows the choice)
 from finetune.pretrained import k1_embedding  # noqa: E402
 from model.config import WorldModelConfig  # noqa: E402
 from model.export import export_frozen  # noqa: E402
@@ -190,7 +190,11 @@ def main() -> None:
         print(f"{'envs':>5} {'start s':>8} {'steps/s':>9} {'vs first':>9}")
         single = None
         for count in env_counts:
-            started, rate = bench_envs(task, count, args.seconds, fast_render, args.pin_envs)
+            try:
+                started, rate = bench_envs(task, count, args.seconds, fast_render, args.pin_envs)
+            except EnvWorkerError as error:  # the workers' own lines are above; the other counts may still run
+                print(f"{count:>5} failed: {error}", flush=True)
+                continue
             single = single or rate
             print(f"{count:>5} {started:>8.1f} {rate:>9.1f} {rate / single:>8.2f}x", flush=True)
 

@@ -17,7 +17,9 @@ interleave) and no validation. Steps/s over the steps after the warm-up (whole e
   (a) long epochs: the sample train shards linked 63 times (over 500 steps an epoch at batch 32, 4 workers);
   (b) short epochs: the sample data's 258 train clips (8 steps an epoch at batch 32, 4 workers: a new
       epoch every 8 steps, served by the same persistent workers; before them, the workers started again);
-with the skipped steps by cause (GradScaler's overflows, non-finite steps). On the CPU also the issue's CPU
+with the skipped steps by cause (GradScaler's overflows, non-finite steps); on a GPU (a) again with the config's
+own workers (ssv2.yaml: 8). Before the fits, the fit's train loader alone (no model) on the same shards and
+workers: the batches/s it gives is the most steps/s the fit could reach with them. On the CPU also the issue's CPU
 target: the fit with 2 workers against the bare step loop on the same batches (aim ≥ 0.9×), and with 0 workers.
 A shared CPU host drifts by more than that margin within minutes, so on the CPU every fit is bracketed: the
 bare eager loop is timed again right after it, each fit is compared with the mean of the bare runs just before
@@ -50,6 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.machine import describe_machine  # noqa: E402
+from data_pipeline.datamodule import ShardDataModule  # noqa: E402
 from data_pipeline.loader import WORKER_PRIORITIES, SequenceDataset, shard_set  # noqa: E402
 from data_pipeline.shard_format import MANIFEST_FILE, ShardDirError, read_manifest  # noqa: E402
 from model.cli import lightning_cli  # noqa: E402
@@ -193,6 +196,32 @@ def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: in
             "peak_gib": peak_memory_gib(device)}
 
 
+def loader_alone(shards: Path, data: dict, workers: int, worker_priority: str, batches: int,
+                 device: torch.device) -> dict:
+    """The fit's own train loader with no model (ShardDataModule's: persistent workers, pinned memory on a GPU),
+    each batch copied to `device`, epochs advanced as SetEpoch does → batches/s over `batches` batches after
+    FIT_WARM_UP (whole epochs for short epochs): the most steps/s the fit could reach with these workers."""
+    datamodule = ShardDataModule(**{**data, "shards": str(shards), "num_workers": workers,
+                                    "worker_priority": worker_priority})
+    datamodule.setup("fit")
+    loader = datamodule.train_dataloader()
+    per_epoch = len(loader)
+    warm = FIT_WARM_UP if per_epoch >= batches else whole_epochs(FIT_WARM_UP, per_epoch)
+    times, epoch = [], 0
+    while len(times) < warm + batches:
+        datamodule.train_set.set_epoch(epoch)
+        for batch in loader:
+            for value in batch.values():
+                if torch.is_tensor(value):
+                    value.to(device, non_blocking=True)
+            times.append(time.perf_counter())
+            if len(times) == warm + batches:
+                break
+        epoch += 1
+    synchronize(device)
+    return {"batches_per_s": batches / (time.perf_counter() - times[warm - 1]), "per_epoch": per_epoch}
+
+
 def whole_epochs(steps: int, per_epoch: int) -> int:
     """At least `steps` steps, rounded up to whole epochs."""
     return math.ceil(steps / per_epoch) * per_epoch
@@ -296,11 +325,25 @@ def main() -> None:
     if not gpu:
         runs.append(("(a) long epochs", long_epochs, 0, fit_steps))
     runs.append(("(b) short epochs", shards, workers, short_steps))
+    config_workers = loaded["data"]["num_workers"]
+    if gpu and config_workers != workers:  # what a user's fit gets (ssv2.yaml: 8)
+        runs.append(("(a) long epochs", long_epochs, config_workers, fit_steps))
+
+    reference_mode = compile_mode if gpu else "off"
+    reference = bare.get((fit_length, reference_mode))
+    print(f"\n{'loader alone':<18} {'workers':>7} {'batches/epoch':>13} {'batches/s':>10} {'× bare':>9}"
+          "  (the fit's train loader, no model, batches copied to the device)")
+    for label, directory, fit_workers, max_steps in runs:
+        if fit_workers == 0:
+            continue
+        result = loader_alone(directory, {**loaded["data"], "seq_len": fit_length}, fit_workers, worker_priority,
+                              max_steps, device)
+        ratio = f" {result['batches_per_s'] / reference['steps_per_s']:8.2f}×" if reference is not None else ""
+        print(f"{label:<18} {fit_workers:>7} {result['per_epoch']:>13} {result['batches_per_s']:10.1f}{ratio}",
+              flush=True)
     print(f"\n{'real fit':<18} {'workers':>7} {'steps/epoch':>11} {'timed steps':>11} {'steps/s':>8} "
           f"{'1st step s':>10} {'scaler skips':>12} {'non-finite':>10} {'peak GiB':>9}"
           f" {'× bare':>9}" + ("" if gpu else f" {'bare ms':>8}  (the bare loop re-timed after each fit)"))
-    reference_mode = compile_mode if gpu else "off"
-    reference = bare.get((fit_length, reference_mode))
     if reference is not None and not gpu:  # timed again just before the first fit, as after every fit
         fit_batches = load_batches(shards, batch_size, fit_length, k_max, 4, device)
         reference = bare_steps(settings, fit_batches, "off", steps, device)
