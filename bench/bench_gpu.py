@@ -8,7 +8,8 @@ Bare step: PretrainModule's noise, observe + losses (`training_losses`, eager or
 backward (GradScaler under 16-mixed), unscale, clip, the fused Adam's step and λ's dual step — what
 `training_step` does, without Lightning — on batches read from the shards beforehand, in the config's
 precision. Per length: ms per step and steps/s (the mean of --steps steps after 3 warm-up steps), the wall
-time of the 3 warm-up steps (compiling, CUDA-graph recording), peak memory.
+time of the 3 warm-up steps (compiling, CUDA-graph recording), peak memory, and the process's CPU time per
+step, all threads ("host ms": near the wall time per step on a GPU, the step is bound by the host).
 
 Real fit: `hauwm pretrain fit` through model.cli's LightningCLI with configs/pretrain/ssv2.yaml (GPU) or
 tiny.yaml (CPU) on one device: its precision, model.compile and log_every_n_steps, --workers DataLoader
@@ -67,17 +68,19 @@ FIT_WARM_UP = 20  # fit steps before the timing (rounded up to whole epochs for 
 
 
 class StepTimer(L.Callback):
-    """The wall-clock time at the start of training and at the end of every training batch; the device is
-    synchronised at the end of training, so the last time covers all queued work."""
+    """The wall-clock time at the start of training and at the end of every training batch, and the CPU time
+    of the training process (all its threads) at each batch end; the device is synchronised at the end of
+    training, so the last time covers all queued work."""
 
     def __init__(self):
-        self.start, self.times = 0.0, []
+        self.start, self.times, self.cpu_times = 0.0, [], []
 
     def on_train_start(self, trainer, pl_module):
         self.start = time.perf_counter()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         self.times.append(time.perf_counter())
+        self.cpu_times.append(time.process_time())
 
     def on_train_end(self, trainer, pl_module):
         synchronize(pl_module.device)
@@ -187,13 +190,13 @@ def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: in
         step(index)
     synchronize(device)
     warm_up = time.perf_counter() - started
-    started = time.perf_counter()
+    started, cpu_started = time.perf_counter(), time.process_time()
     for index in range(WARM_UP, WARM_UP + steps):
         step(index)
     synchronize(device)
     seconds = (time.perf_counter() - started) / steps
     return {"ms": 1000 * seconds, "steps_per_s": 1 / seconds, "warm_up_s": warm_up,
-            "peak_gib": peak_memory_gib(device)}
+            "peak_gib": peak_memory_gib(device), "cpu_ms": 1000 * (time.process_time() - cpu_started) / steps}
 
 
 def loader_alone(shards: Path, data: dict, workers: int, worker_priority: str, batches: int,
@@ -242,8 +245,9 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
     timer = next(callback for callback in cli.trainer.callbacks if type(callback).__name__ == "StepTimer")
     per_epoch = cli.trainer.num_training_batches
     warm = min(FIT_WARM_UP, max_steps // 2) if per_epoch >= max_steps else whole_epochs(FIT_WARM_UP, per_epoch)
-    times = timer.times
+    times, cpu_times = timer.times, timer.cpu_times
     return {"steps_per_s": (len(times) - warm) / (times[-1] - times[warm - 1]), "steps_per_epoch": per_epoch,
+            "cpu_ms": 1000 * (cpu_times[-1] - cpu_times[warm - 1]) / (len(times) - warm),
             "timed_steps": len(times) - warm, "first_step_s": times[0] - timer.start,
             "scaler_skips": int(cli.model.scaler_skips), "nonfinite_steps": int(cli.model.nonfinite_steps),
             "peak_gib": peak_memory_gib(device)}
@@ -307,7 +311,8 @@ def main() -> None:
     shards = args.shards or sample_shards(work)
     print(f"shards: {shards} ({time.perf_counter() - started:.0f} s)", flush=True)
 
-    print(f"\n{'bare step':<24} {'L':>3} {'ms/step':>8} {'steps/s':>8} {'warm-up s':>10} {'peak GiB':>9}")
+    print(f"\n{'bare step':<24} {'L':>3} {'ms/step':>8} {'steps/s':>8} {'warm-up s':>10} {'peak GiB':>9} "
+          f"{'host ms':>8}  (host ms: the process's CPU time a step, all threads)")
     bare = {}
     for length in lengths:
         batches = load_batches(shards, batch_size, length, k_max, 4, device)
@@ -315,7 +320,7 @@ def main() -> None:
             result = bare[length, mode] = bare_steps(settings, batches, mode, steps, device)
             label = "eager" if mode == "off" else f"compiled ({mode})"
             print(f"{label:<24} {length:>3} {result['ms']:8.1f} {result['steps_per_s']:8.1f} "
-                  f"{result['warm_up_s']:10.1f} {result['peak_gib']:9.2f}", flush=True)
+                  f"{result['warm_up_s']:10.1f} {result['peak_gib']:9.2f} {result['cpu_ms']:8.1f}", flush=True)
 
     long_epochs = linked_copies(shards, work / "long-epochs", LONG_EPOCH_COPIES)
     per_epoch = len(SequenceDataset(shard_set(shards, "train"), batch_size=batch_size, seq_len=fit_length,
@@ -342,7 +347,7 @@ def main() -> None:
         print(f"{label:<18} {fit_workers:>7} {result['per_epoch']:>13} {result['batches_per_s']:10.1f}{ratio}",
               flush=True)
     print(f"\n{'real fit':<18} {'workers':>7} {'steps/epoch':>11} {'timed steps':>11} {'steps/s':>8} "
-          f"{'1st step s':>10} {'scaler skips':>12} {'non-finite':>10} {'peak GiB':>9}"
+          f"{'1st step s':>10} {'scaler skips':>12} {'non-finite':>10} {'peak GiB':>9} {'host ms':>8}"
           f" {'× bare':>9}" + ("" if gpu else f" {'bare ms':>8}  (the bare loop re-timed after each fit)"))
     if reference is not None and not gpu:  # timed again just before the first fit, as after every fit
         fit_batches = load_batches(shards, batch_size, fit_length, k_max, 4, device)
@@ -361,7 +366,8 @@ def main() -> None:
                 reference = after
             print(f"{label:<18} {fit_workers:>7} {result['steps_per_epoch']:>11} {result['timed_steps']:>11} "
                   f"{result['steps_per_s']:8.2f} {result['first_step_s']:10.1f} {result['scaler_skips']:>12} "
-                  f"{result['nonfinite_steps']:>10} {result['peak_gib']:9.2f}{ratio_text}", flush=True)
+                  f"{result['nonfinite_steps']:>10} {result['peak_gib']:9.2f} {result['cpu_ms']:8.1f}{ratio_text}",
+                  flush=True)
 
     kind = "bare compiled step (aim ≥ 0.8×)" if gpu else "bare eager step loop on the same batches (aim ≥ 0.9×)"
     for (label, fit_workers), values in ratios.items():
