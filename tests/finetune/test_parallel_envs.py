@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -196,7 +197,8 @@ if __name__ == "__main__":
 def test_an_env_worker_that_cannot_build_its_env_ends_with_one_line_and_the_parent_names_the_task(tmp_path):
     script = tmp_path / "workers_fail.py"
     script.write_text(WORKERS_FAIL)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")])}
+    repo = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([repo, os.environ.get("PYTHONPATH", "")])}
     result = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("refused: an env worker of dmc_cartpole_swingup could not build its env")
