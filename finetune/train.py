@@ -388,7 +388,7 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
 
 def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hooks: LoopHooks = LoopHooks()) -> dict[str, float]:
     """The loop itself, in a run directory this process holds the lock of."""
-    from finetune.envs.vector import EnvWorkerError, make_vector_env
+    from finetune.envs.vector import EnvWorkerError, closing_envs, make_vector_env
 
     logdir = Path(cfg.logdir)
     probe = task_env(cfg, cfg.seed)
@@ -419,7 +419,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
         envs = make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)
     except EnvWorkerError as error:
         raise FinetuneError(f"task {cfg.task!r}: {error}") from None
-    with contextlib.closing(envs):
+    with closing_envs(envs):
         return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, logdir / CHECKPOINT, fingerprint,
                     progress, hooks.reseed)
 

@@ -13,7 +13,8 @@
   an EGL display: every worker forked from a server holding one failed to make its context
   (`EGL_BAD_ALLOC`, seen on an H200), so there each worker imports its suite itself. A worker that
   cannot build its env says why in one line and the parent raises `EnvWorkerError` naming the task.
-  Frames come back through shared memory.
+  Workers ignore SIGINT: a terminal's Ctrl-C reaches the whole process group, and the learner, not each
+  worker, decides what an interrupt does (`closing_envs` ends them). Frames come back through shared memory.
 - Workers are pinned to CPUs (`pin=True`, the default; Linux), the way Sample Factory pins its rollout
   workers: with N envs on C usable CPUs (`os.sched_getaffinity`), worker i gets CPU i mod C when C
   divides N, and its own block of C/N CPUs when N divides C; otherwise nothing is pinned. Every CPU gets
@@ -34,8 +35,10 @@ import contextlib
 import functools
 import multiprocessing
 import os
+import signal
 import sys
 import warnings
+from collections.abc import Iterator
 
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
@@ -61,8 +64,8 @@ def make_vector_env(name: str, seeds: list[int], pin: bool = True, **kwargs) -> 
     try:
         envs = AsyncVectorEnv(env_fns, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP)
     except (EOFError, ConnectionError) as error:  # a worker ended before answering: make_env_in_worker said why
-        raise EnvWorkerError(f"an env worker of {name} could not build its env (its reason is on stderr above: "
-                             f"'env worker of {name} …'); {type(error).__name__} from the worker's pipe") from None
+        raise EnvWorkerError(f"an env worker of {name} could not build its env (the worker's reason is on stderr "
+                             f"above); {type(error).__name__} from the worker's pipe") from None
     if pin and hasattr(os, "sched_getaffinity"):  # Linux
         cpu_sets = worker_cpus(len(seeds), sorted(os.sched_getaffinity(0)))
         if cpu_sets is not None:
@@ -82,17 +85,40 @@ def forkserver_preload(name: str) -> list[str]:
 def make_env_in_worker(name: str, parent_pid: int, seed: int, **kwargs):
     """`make_env` in an env worker process: a failure ends the worker with one line on stderr instead of a
     traceback per worker (the parent then raises EnvWorkerError); `os._exit` skips the half-built renderer's
-    finalisers, which would print tracebacks of their own. In the parent (AsyncVectorEnv builds env 0 there
-    too, for its spaces) a failure is raised as usual."""
+    finalisers, which would print tracebacks of their own. The worker ignores SIGINT (module docstring). In the
+    parent (AsyncVectorEnv builds env 0 there too, for its spaces) a failure is raised as usual."""
+    in_worker = os.getpid() != parent_pid
+    if in_worker:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         return make_env(name, seed=seed, **kwargs)
     except Exception as error:
-        if os.getpid() == parent_pid:
+        if not in_worker:
             raise
         reason = " ".join(str(error).split())[:400]  # EGLError's text spans many lines
         print(f"env worker of {name} (seed {seed}, pid {os.getpid()}): {type(error).__name__}: {reason}",
               file=sys.stderr, flush=True)
         os._exit(1)
+
+
+@contextlib.contextmanager
+def closing_envs(envs: VectorEnv) -> Iterator[VectorEnv]:
+    """Close `envs` when the block ends. When it ends by an exception (Ctrl-C while the workers step), the workers
+    are terminated without waiting for the step in flight, gymnasium's warning about that call is silenced, and a
+    worker that is gone already (killed) cannot turn the exception into a BrokenPipeError."""
+    try:
+        yield envs
+    except BaseException:
+        with warnings.catch_warnings(), contextlib.suppress(OSError, EOFError):
+            warnings.simplefilter("ignore")
+            envs.close(terminate=True)
+        if not envs.closed:  # close stopped at a dead worker's pipe: end the rest here, and let no __del__ try again
+            for process in envs.processes:
+                process.terminate()
+                process.join()
+            envs.closed = True
+        raise
+    envs.close()
 
 
 def worker_cpus(num_envs: int, cpus: list[int]) -> list[set[int]] | None:

@@ -3,9 +3,12 @@ their episodes apart, and the vector env resets an env inside the step that ends
 
 from __future__ import annotations
 
+import gc
 import os
+import signal
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +17,7 @@ import torch
 
 from finetune.config import load_config
 from finetune.envs import make_env, opengl
-from finetune.envs.vector import forkserver_preload, make_vector_env, worker_cpus
+from finetune.envs.vector import closing_envs, forkserver_preload, make_vector_env, worker_cpus
 from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, train
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
@@ -213,3 +216,38 @@ def test_the_fork_server_imports_the_suite_only_where_no_egl_display_comes_with_
     assert forkserver_preload("dmc_cartpole_swingup") == ["__main__", "finetune.envs", "finetune.envs.dmc_env"]
     monkeypatch.setenv("MUJOCO_GL", "egl")  # importing dm_control would open an EGL display in the fork server
     assert forkserver_preload("dmc_cartpole_swingup") == ["__main__", "finetune.envs"]
+
+
+def test_env_workers_ignore_ctrl_c_so_the_learner_decides_what_an_interrupt_does():
+    envs = make_vector_env("dmc_cartpole_swingup", [0, 1], pin=False, fast_render=True, time_limit=3)
+    with closing_envs(envs):
+        envs.reset()
+        for process in envs.processes:  # what a terminal's Ctrl-C sends the whole process group
+            os.kill(process.pid, signal.SIGINT)
+        envs.step(np.zeros((2, 1), np.float32))  # the workers are still there and answer
+        assert all(process.is_alive() for process in envs.processes)
+    assert not any(process.is_alive() for process in envs.processes)
+
+
+@pytest.mark.parametrize("worker_killed", [False, True])
+def test_an_interrupt_while_the_workers_step_ends_them_and_stays_an_interrupt(worker_killed):
+    """Ctrl-C between step_async and step_wait: no warning about the pending step, and a worker killed meanwhile
+    must not turn the KeyboardInterrupt into a BrokenPipeError (which `hauwm` reported as a closed stdout)."""
+    envs = make_vector_env("dmc_cartpole_swingup", [0, 1], pin=False, fast_render=True, time_limit=3)
+    envs.reset()
+    processes = envs.processes
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(KeyboardInterrupt), closing_envs(envs):
+            envs.step_async(np.zeros((2, 1), np.float32))
+            if worker_killed:
+                os.kill(processes[0].pid, signal.SIGKILL)
+                processes[0].join()
+            raise KeyboardInterrupt
+        assert envs.closed  # so its __del__ does not try again, with the warning and a traceback of its own
+        del envs
+        gc.collect()
+    assert not [w for w in caught if "pending call" in str(w.message)]
+    for process in processes:
+        process.join(timeout=10)
+        assert not process.is_alive()
