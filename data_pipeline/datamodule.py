@@ -68,13 +68,17 @@ class ShardDataModule(lightning.LightningDataModule):
             self.train_set = SequenceDataset(shard_set(hp.shards, hp.train_split, hp.shard_url),
                                              num_workers=hp.num_workers, shuffle=True,
                                              shuffle_buffer=hp.shuffle_buffer, **common)
-        if stage in (None, "fit", "validate"):
+        no_validation = stage == "fit" and self.trainer is not None and self.trainer.limit_val_batches == 0
+        if stage in (None, "fit", "validate") and not no_validation:
             val_shards = shard_set(hp.shards, hp.val_split, hp.shard_url)
             world_size = self.trainer.world_size if self.trainer is not None else 1
             usable = sum(n > 0 for n in val_shards.eligible(hp.seq_len))
             workers = max(0, min(hp.num_workers, usable // max(1, world_size)))
-            self.val_set = SequenceDataset(val_shards, num_workers=workers, shuffle=False,
-                                           batches_per_worker=max(1, hp.val_batches // max(1, workers)), **common)
+            try:
+                self.val_set = SequenceDataset(val_shards, num_workers=workers, shuffle=False,
+                                               batches_per_worker=max(1, hp.val_batches // max(1, workers)), **common)
+            except LoaderError as error:
+                raise LoaderError(f"{error}; or train without validation (--trainer.limit_val_batches 0)") from None
 
     def train_dataloader(self):
         if self.trainer is not None and not any(isinstance(c, SetEpoch) for c in self.trainer.callbacks):

@@ -169,10 +169,12 @@ class SequenceDataset(IterableDataset):
             raise LoaderError(f"split {shards.split!r} has no clip of at least seq_len={seq_len} frames (the longest "
                               f"has {longest}): lower seq_len")
         if len(usable) < streams:
+            fewer = (["fewer workers (--data.num_workers)"] if self.workers > 1 else []) + (
+                ["fewer devices (--trainer.devices)"] if world_size > 1 else [])
             raise LoaderError(
                 f"split {shards.split!r} has {len(usable)} shards with clips of at least seq_len={seq_len} frames, "
-                f"but {world_size} ranks × {self.workers} workers need at least {streams}: rebuild with a smaller "
-                f"--clips-per-shard, or use fewer workers")
+                f"but {world_size} ranks × {self.workers} workers need at least {streams} (one each): rebuild with a "
+                f"smaller --clips-per-shard" + "".join(f", or use {way}" for way in fewer))
         clips = sum(n for _, n in usable)
         self.batches_per_worker = batches_per_worker or clips // (streams * batch_size)
         if self.batches_per_worker < 1:

@@ -209,8 +209,14 @@ def test_pipe_urls_read_the_same_data(built_shards):
 def test_too_few_shards_or_clips_give_clear_errors(built_shards, monkeypatch):
     shards = shard_set(built_shards, "train")
     as_stream(monkeypatch, 0, 3, 0, 1)
-    with pytest.raises(LoaderError, match="5 shards .* 3 ranks × 2 workers need at least 6"):
+    with pytest.raises(LoaderError, match="5 shards .* 3 ranks × 2 workers need at least 6 .one each.: rebuild with a "
+                                          "smaller --clips-per-shard, or use fewer workers .--data.num_workers., or use "
+                                          "fewer devices .--trainer.devices.$"):
         SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=2)
+    as_stream(monkeypatch, 0, 6, 0, 1)  # one worker already: only fewer devices can help
+    with pytest.raises(LoaderError, match="6 ranks × 1 workers need at least 6 .one each.: rebuild with a smaller "
+                                          "--clips-per-shard, or use fewer devices .--trainer.devices.$"):
+        SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=1)
     as_stream(monkeypatch, 0, 1, 0, 1)
     with pytest.raises(LoaderError, match="lower batch_size"):
         SequenceDataset(shards, batch_size=64, seq_len=8)
@@ -226,6 +232,19 @@ def test_datamodule_validates_its_inputs(built_shards, tmp_path):
         ShardDataModule(str(tmp_path)).setup("fit")
     with pytest.raises(LoaderError, match="has no split 'test'.*--split test"):
         ShardDataModule(str(built_shards), val_split="test", batch_size=2, seq_len=8).setup("fit")
+
+
+def test_a_fit_without_validation_needs_no_usable_validation_split(built_shards, monkeypatch):
+    """More ranks than validation shards: refused with the ways out, one of them a fit without validation, which
+    then builds no validation set at all."""
+    validation_shards = len(shard_set(built_shards, "validation").urls)
+    as_stream(monkeypatch, 0, validation_shards + 1, 0, 1)
+    data = ShardDataModule(str(built_shards), batch_size=1, seq_len=4, num_workers=0)
+    with pytest.raises(LoaderError, match="split 'validation' .* train without validation .--trainer.limit_val_batches 0.$"):
+        data.setup("fit")
+    data.trainer = lightning.Trainer(limit_val_batches=0, logger=False, enable_checkpointing=False)
+    data.setup("fit")
+    assert data.val_set is None and data.train_set is not None
 
 
 class WorkerPids(lightning.Callback):
