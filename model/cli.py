@@ -98,14 +98,24 @@ def lightning_cli(args: list[str]):
             subcommand = self.config.get("subcommand") or ""
             config = self.config.get(subcommand, {})
             ckpt_path = config.get("ckpt_path") if config else None
+            last = Path(config["trainer"]["default_root_dir"] or ".") / "checkpoints" / "last.ckpt" if config else None
             if ckpt_path == "last":  # Lightning's word for the newest checkpoint: this run's, if it has one yet
-                last = Path(config["trainer"]["default_root_dir"] or ".") / "checkpoints" / "last.ckpt"
                 ckpt_path = config["ckpt_path"] = str(last) if last.is_file() else None
                 rank_zero_only(print)(f"hauwm pretrain {subcommand}: --ckpt_path last: " + (
                     f"resuming from {last}" if ckpt_path else f"no {last} yet, starting at step 0"), file=sys.stderr)
+            elif subcommand == "fit" and ckpt_path is None and last.is_file():
+                # a fresh fit there would write last-v1.ckpt beside it, and `--ckpt_path last` would then resume the old run
+                raise ConfigError(f"{last.parent} holds the checkpoints of an earlier fit (last.ckpt): go on from it with "
+                                  "--ckpt_path last, or start afresh with another --trainer.default_root_dir")
             if not (ckpt_path and Path(ckpt_path).is_file()):
                 return super()._parse_ckpt_path()
-            saved = read_checkpoint(ckpt_path)[0]["hyper_parameters"]
+            checkpoint = read_checkpoint(ckpt_path)[0]
+            max_steps = config["trainer"]["max_steps"]
+            if subcommand == "fit" and 0 <= max_steps <= checkpoint.get("global_step", 0):
+                rank_zero_only(print)(f"hauwm pretrain fit: {ckpt_path} is at step {checkpoint['global_step']}, and "
+                                      f"--trainer.max_steps is {max_steps}: nothing to train (raise max_steps to go on)",
+                                      file=sys.stderr)
+            saved = checkpoint["hyper_parameters"]
             asked = WorldModelConfig(**config["model"]["world_model"].as_dict())
             refuse_other_size(saved, asked, str(ckpt_path))
             if "world_model" not in saved:  # read_checkpoint found the sizes, flat at the top level

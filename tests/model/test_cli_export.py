@@ -188,10 +188,22 @@ def test_ckpt_path_last_resumes_the_runs_newest_checkpoint_or_starts_afresh(buil
     shutil.copytree(tiny_run / "checkpoints", tmp_path / "run" / "checkpoints")
     last = tmp_path / "run" / "checkpoints" / "last.ckpt"
     assert fit(built_shards, tmp_path / "run", "--ckpt_path", "last", "--trainer.max_steps", str(RUN_STEPS)) == 0
-    assert f"--ckpt_path last: resuming from {last}" in capsys.readouterr().err  # at max_steps already: ends at once
+    said = capsys.readouterr().err
+    assert f"--ckpt_path last: resuming from {last}" in said  # at max_steps already: ends at once, and says so
+    assert f"{last} is at step {RUN_STEPS}, and --trainer.max_steps is {RUN_STEPS}: nothing to train" in said
     assert fit(built_shards, tmp_path / "fresh", "--ckpt_path", "last", "--trainer.max_steps", "1") == 0
     assert f"--ckpt_path last: no {tmp_path / 'fresh' / 'checkpoints' / 'last.ckpt'} yet, starting at step 0" in \
         capsys.readouterr().err
+
+
+def test_a_fresh_fit_where_an_earlier_fit_left_last_ckpt_is_refused(built_shards, tiny_run, tmp_path, capsys):
+    """It would write last-v1.ckpt beside the old last.ckpt, which `--ckpt_path last` would later resume."""
+    shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "1") == 2
+    assert (f"{tmp_path / 'checkpoints'} holds the checkpoints of an earlier fit (last.ckpt): go on from it with "
+            "--ckpt_path last") in capsys.readouterr().err
+    assert sorted(path.name for path in (tmp_path / "checkpoints").iterdir()) == \
+        sorted(path.name for path in (tiny_run / "checkpoints").iterdir())
 
 
 def test_an_export_is_not_replaced_without_overwrite(tiny_run, tiny_export, tmp_path, capsys):
