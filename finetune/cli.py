@@ -123,6 +123,9 @@ def main(argv: list[str] | None = None) -> int:
                               f"`{COMMANDS[cfg.paradigm]} --config {args.config} …`, or give `{COMMANDS[paradigm]}` "
                               f"a config from {CONFIG_DIRS[paradigm]}/")
         pretrained = args.pretrained
+        if cfg.paradigm == "offline" and cfg.num_envs != 1:  # it steps no training env; a user would expect speed
+            print(f"{parser(subcommand).prog}: note: offline RL steps no training env (evaluation plays one), so "
+                  f"num_envs {cfg.num_envs} is not used", file=sys.stderr)
         if cfg.agent == "scratch" and pretrained is not None:  # the run ignores it (start_run); say so, pass none
             print(f"{parser(subcommand).prog}: note: the scratch agent does not use --pretrained {pretrained}",
                   file=sys.stderr)

@@ -19,6 +19,7 @@ import dataclasses
 import fcntl
 import hashlib
 import os
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -29,7 +30,7 @@ import yaml
 from tqdm import tqdm
 
 from finetune.agent import Agent, resolve_compile
-from finetune.config import ConfigError, FinetuneConfig, load_config
+from finetune.config import ConfigError, FinetuneConfig, load_config, step_unit
 from finetune.logger import Logger
 from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
@@ -375,6 +376,8 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
     checkpoint = Path(cfg.logdir) / CHECKPOINT
     if checkpoint.exists():
         counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng, resuming=True)
+        unit, key = step_unit(cfg.paradigm)
+        print(f"resuming {checkpoint} at {unit} {int(counters[key])}", file=sys.stderr)
     best = Path(cfg.logdir) / BEST
     if best.exists():  # a run stopped between keeping an evaluation and its next checkpoint: its best.pt is better
         #                than the checkpoint's counters know, and a worse evaluation must not replace it on resume

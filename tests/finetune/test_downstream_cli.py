@@ -69,6 +69,12 @@ def test_an_interrupted_run_says_which_checkpoint_is_kept(monkeypatch, tmp_path,
     assert f"its last checkpoint, {tmp_path / 'checkpoint.pt'} (written " in capsys.readouterr().err
 
 
+def test_offline_rl_says_it_does_not_use_num_envs(monkeypatch, capsys):
+    monkeypatch.setattr("finetune.offline.train_offline", lambda cfg, pretrained, progress: {"r": 1.0})
+    assert main(["offline", "--config", "configs/offline/demo.yaml", "--dataset", "d-v0", "--set", "num_envs=4"]) == 0
+    assert "offline RL steps no training env (evaluation plays one), so num_envs 4 is not used" in capsys.readouterr().err
+
+
 def test_the_scratch_agent_says_it_does_not_use_the_export(monkeypatch, capsys):
     given = []
     monkeypatch.setattr(finetune.train, "train", lambda cfg, pretrained, progress: given.append(pretrained) or {"r": 1.0})

@@ -53,7 +53,9 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert load_checkpoint(logdir / CHECKPOINT, agent, cfg, export_fingerprint(export_dir))["env_step"] == 200
     assert all(torch.equal(agent.trainable_state_dict()[k], v) for k, v in first["agent"].items())
 
+    capsys.readouterr()
     assert main(args + ["--steps", "280"]) == 0
+    assert f"resuming {logdir / CHECKPOINT} at env step 200" in capsys.readouterr().err
     second = torch.load(logdir / CHECKPOINT, weights_only=True)
     assert second["counters"]["env_step"] == 280 and second["counters"]["updates"] == 20
     assert [int(r["env_step"]) for r in rows(logdir / "episodes.csv")][-2:] == [240, 280]
