@@ -66,7 +66,7 @@ class ShardDataModule(lightning.LightningDataModule):
         common = dict(batch_size=hp.batch_size, seq_len=hp.seq_len, k_max=hp.k_max, seed=hp.seed)
         if stage in (None, "fit"):
             self.train_set = SequenceDataset(shard_set(hp.shards, hp.train_split, hp.shard_url),
-                                             num_workers=hp.num_workers, shuffle=True,
+                                             num_workers=hp.num_workers, shuffle=True, continuous=True,
                                              shuffle_buffer=hp.shuffle_buffer, **common)
         no_validation = stage == "fit" and self.trainer is not None and self.trainer.limit_val_batches == 0
         if stage in (None, "fit", "validate") and not no_validation:

@@ -17,7 +17,10 @@ worker starts. The main process writes it: `set_epoch` (the `SetEpoch` callback 
 call `set_epoch` on an IterableDataset) and `resume_at` (from `ResumableDataLoader.load_state_dict`). Every
 `__iter__` reads it, in the main process or in a worker. The DataLoader calls `__iter__` in each worker when
 the worker starts and again at each `iter(loader)` (torch sends the workers `_ResumeIteration` after the main
-process wrote the position), so each epoch's iterator sees what a worker started for that epoch would.
+process wrote the position), so each epoch's iterator sees what a worker started for that epoch would. The
+training set is `continuous`: its workers' iterators go on into the next epoch by themselves, and
+`ResumableDataLoader` re-creates them only where the position is not the one their stream has reached (the
+first epoch, a resume), so there is no pause at an epoch's start (docs/data_pipeline.md).
 
 A failing worker becomes a `LoaderError` naming the worker, the shard it was reading (each worker notes it
 in a second shared tensor) and the likely cause. An exception inside a worker (an unreadable shard, frames
@@ -34,12 +37,14 @@ The stages of one worker (the per-sequence cost at L = 16 is in bench/README.md)
 
 from __future__ import annotations
 
+import itertools
 import json
 import multiprocessing.connection
 import os
 import random
 import signal
 import threading
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
@@ -155,7 +160,10 @@ class SequenceDataset(IterableDataset):
 
     def __init__(self, shards: ShardSet, batch_size: int = 32, seq_len: int = 16, k_max: int = 5,
                  num_workers: int = 0, shuffle: bool = True, shuffle_buffer: int = 256, seed: int = 0,
-                 batches_per_worker: int | None = None):
+                 batches_per_worker: int | None = None, continuous: bool = False):
+        """`continuous`: an iterator goes on from epoch to epoch by itself (training: the workers run into the next
+        epoch while the last batches of this one train; `ResumableDataLoader` hands out one epoch per `iter()`);
+        otherwise an iterator is one epoch (validation: the same batches at every evaluation)."""
         if seq_len < 1 or k_max < 1 or batch_size < 1:
             raise LoaderError(f"seq_len, k_max and batch_size must be at least 1 "
                               f"(got {seq_len}, {k_max}, {batch_size})")
@@ -182,7 +190,7 @@ class SequenceDataset(IterableDataset):
                               f"one batch of {batch_size} for each of {streams} ranks × workers; lower batch_size")
         self.urls = [url for url, _ in usable]
         self.batch_size, self.seq_len, self.k_max = batch_size, seq_len, k_max
-        self.shuffle, self.shuffle_buffer, self.seed = shuffle, shuffle_buffer, seed
+        self.shuffle, self.shuffle_buffer, self.seed, self.continuous = shuffle, shuffle_buffer, seed, continuous
         # shared with the DataLoader workers (created before they start): [epoch, batches of it already trained
         # on per rank (a resumed run)], written by the main process, read by every `__iter__`
         self._position = torch.zeros(2, dtype=torch.int64).share_memory_()
@@ -212,13 +220,14 @@ class SequenceDataset(IterableDataset):
     def __len__(self) -> int:
         return self.batches_per_worker * self.workers
 
-    def stream_urls(self, worker: int) -> list[str]:
-        """The shards stream `worker` of this rank reads this epoch: the list shuffled with seed + epoch (the
-        same order everywhere), split by node (webdataset's `split_by_node`), then every `workers`-th shard
-        from `worker` on (what `split_by_worker` does, for a stream index that need not be the process's)."""
+    def stream_urls(self, worker: int, epoch: int | None = None) -> list[str]:
+        """The shards stream `worker` of this rank reads in `epoch` (default: this one): the list shuffled with
+        seed + epoch (the same order everywhere), split by node (webdataset's `split_by_node`), then every
+        `workers`-th shard from `worker` on (what `split_by_worker` does, for a stream index that need not be the
+        process's)."""
         urls = list(self.urls)
         if self.shuffle:
-            random.Random(self.seed + self.epoch).shuffle(urls)
+            random.Random(self.seed + (self.epoch if epoch is None else epoch)).shuffle(urls)
         return list(wds.split_by_node(urls))[worker :: self.workers]
 
     def _sources(self, urls: list[str], worker: int) -> Iterator[dict]:
@@ -240,20 +249,29 @@ class SequenceDataset(IterableDataset):
             yield from samples
 
     def __iter__(self) -> Iterator[dict | LoaderError]:
-        """This worker's batches of the epoch. A DataLoader takes batch i from worker i mod W, and after a
-        resume it still asks worker 0 first: so worker p plays stream (p + skip) mod W, which skips the
-        sequences its stream already gave (without decoding them), and the batches come in the same order as
-        in an uninterrupted run."""
+        """This worker's batches of the epoch (and, `continuous`, of the epochs after it). A DataLoader takes
+        batch i from worker i mod W, and after a resume it still asks worker 0 first: so worker p plays stream
+        (p + skip) mod W, which skips the sequences its stream already gave (without decoding them), and the
+        batches come in the same order as in an uninterrupted run. An epoch holds W · batches_per_worker
+        batches, so in the epochs after, worker p is asked right after the stream before its own again: it
+        keeps playing stream (p + skip) mod W, from the epoch's first batch."""
         rank, _, process_worker, _ = pytorch_worker_info()
-        stream = (process_worker + self.skip_batches) % self.workers
-        skipped = (self.skip_batches - stream + self.workers - 1) // self.workers  # batches this stream gave
-        rng = np.random.default_rng([self.seed, self.epoch, rank, stream])
-        urls = self.stream_urls(stream)
-        sequences = (to_sequence(sample, self.seq_len, self.k_max, rng)
-                     for sample in self._passes(urls, rng, process_worker))
+        first_epoch, skip = self.epoch, self.skip_batches
+        stream = (process_worker + skip) % self.workers
+        skipped = (skip - stream + self.workers - 1) // self.workers  # batches this stream gave
+        epochs = itertools.count(first_epoch) if self.continuous else [first_epoch]
+        batches = (batch for epoch in epochs for batch in self._epoch_batches(
+            epoch, rank, stream, skipped if epoch == first_epoch else 0, process_worker))
+        return self._naming_the_shard(batches, process_worker)
+
+    def _epoch_batches(self, epoch: int, rank: int, stream: int, skipped: int, worker: int) -> Iterator[dict]:
+        """Stream `stream`'s batches of `epoch`, after the first `skipped`, read by DataLoader worker `worker`."""
+        rng = np.random.default_rng([self.seed, epoch, rank, stream])
+        urls = self.stream_urls(stream, epoch)
+        sequences = (to_sequence(sample, self.seq_len, self.k_max, rng) for sample in self._passes(urls, rng, worker))
         remaining = islice(filter(None, sequences), skipped * self.batch_size, None)
         batches = wds.batched(self.batch_size, collation_fn=collate, partial=False)(remaining)
-        return self._naming_the_shard(islice(batches, max(0, self.batches_per_worker - skipped)), process_worker)
+        return islice(batches, max(0, self.batches_per_worker - skipped))
 
     def _naming_the_shard(self, batches: Iterator[dict], worker: int) -> Iterator[dict | LoaderError]:
         """`batches`, with an error turned into a `LoaderError` naming the worker and the shard it was reading.
@@ -338,16 +356,56 @@ class ResumableDataLoader(DataLoader):
             epoch, batches = epoch + 1, 0  # this iterator and without the epoch-start hooks (so without SetEpoch)
         self.dataset.resume_at(epoch, batches)
 
+    _stream: Iterator[dict | LoaderError] | None = None  # torch's iterator of a continuous dataset, over the epochs
+    _stream_at: tuple[int, int] = (-1, 0)  # the (epoch, batches of it) `_stream` gives next
+
     def __iter__(self) -> Iterator[dict]:
-        batches = self._fetch(super().__iter__)  # starts the workers the first time, then tells them an epoch began
+        """One epoch of batches. For a continuous dataset, from the stream the workers keep going into the next
+        epoch (no pause at an epoch's start); a new stream only where the dataset's position is not the one the
+        stream has reached: the first epoch, a resume, a `set_epoch` out of turn. (Only torch's iterator is kept
+        here: a generator of this loader's methods, kept by the loader, would be a reference cycle that a later
+        fork could collect in a worker.)"""
+        if not self.dataset.continuous:
+            return self._raising_worker_errors(self._started())
+        at = (self.dataset.epoch, self.dataset.skip_batches)
+        if self._stream is None or at != self._stream_at:
+            # torch counts an iterator's batches against len(loader) and warns past it: this one gives len batches
+            # per epoch, epoch after epoch, by design
+            warnings.filterwarnings("ignore", message=r"Length of IterableDataset <data_pipeline\.loader\.SequenceDataset")
+            self._stream, self._stream_at = self._started(), at
+        return self._rest_of_epoch()
+
+    def _started(self) -> Iterator[dict | LoaderError]:
+        """torch's iterator, from workers told the dataset's position (started the first time, resumed after)."""
+        batches = self._fetch(super().__iter__)
         if self.num_workers > 0:
             _defer_worker_deaths()
-        return self._raising_worker_errors(batches)
+        return batches
+
+    def _next_batch(self, batches: Iterator[dict | LoaderError]) -> dict | None:
+        """The next batch, None at the end; an error inside a worker, handed over as its last item, raised."""
+        batch = self._fetch(lambda: next(batches, None))
+        if isinstance(batch, LoaderError):
+            raise batch
+        return batch
 
     def _raising_worker_errors(self, batches: Iterator[dict | LoaderError]) -> Iterator[dict]:
-        while (batch := self._fetch(lambda: next(batches, None))) is not None:
-            if isinstance(batch, LoaderError):  # an error inside a worker, handed over as its last item
-                raise batch
+        while (batch := self._next_batch(batches)) is not None:
+            yield batch
+
+    def _rest_of_epoch(self) -> Iterator[dict]:
+        """The stream's batches up to the end of the epoch it is in; a failure ends the stream."""
+        epoch, done = self._stream_at
+        while done < len(self):
+            try:
+                batch = self._next_batch(self._stream)
+                if batch is None:
+                    raise LoaderError(f"the loader's stream ended in epoch {epoch} after {done} of {len(self)} batches")
+            except BaseException:
+                self._stream = None
+                raise
+            done += 1
+            self._stream_at = (epoch, done) if done < len(self) else (epoch + 1, 0)
             yield batch
 
     def _fetch(self, wait: Callable):

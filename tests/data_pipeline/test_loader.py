@@ -17,7 +17,7 @@ from scipy.stats import chisquare
 from torch.utils.data import DataLoader
 
 from data_pipeline import SetEpoch, ShardDataModule
-from data_pipeline.loader import LoaderError, SequenceDataset, make_dataloader, shard_set
+from data_pipeline.loader import LoaderError, ResumableDataLoader, SequenceDataset, make_dataloader, shard_set
 from data_pipeline.shard_format import ShardDirError, decode_frames, read_samples
 
 
@@ -142,6 +142,32 @@ def test_persistent_workers_give_each_epoch_what_workers_started_for_it_give(bui
         assert summary([first, *batches]) == expected[epoch]
     assert len(pids[0]) == 2 and all(epoch_pids == pids[0] for epoch_pids in pids)  # started once
     assert len({str(epoch) for epoch in expected}) == 4  # a new order every epoch
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_continuous_workers_run_on_into_the_next_epoch_with_the_same_batches(built_shards, monkeypatch, workers):
+    """Training's loader: one stream over the epochs (no pause while the workers start the next epoch), giving
+    each epoch what a loader told the epoch gives; a position out of turn (a resume) starts a new stream."""
+    shards = shard_set(built_shards, "train")
+    reference = SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=workers, seed=7)
+    reference_loader = make_dataloader(reference)
+    expected = []
+    for epoch in range(4):
+        reference.set_epoch(epoch)
+        expected.append(summary(reference_loader))
+    dataset = SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=workers, seed=7, continuous=True)
+    loader = make_dataloader(dataset)
+    starts, start = [], ResumableDataLoader._started
+    monkeypatch.setattr(ResumableDataLoader, "_started", lambda self: starts.append(dataset.epoch) or start(self))
+    for epoch in range(4):
+        dataset.set_epoch(epoch)  # as SetEpoch does
+        assert summary(loader) == expected[epoch]
+    assert starts == [0]
+    loader.load_state_dict({"epoch": 1, "batches": 3})
+    assert summary(loader) == expected[1][3:]
+    dataset.set_epoch(2)
+    assert summary(loader) == expected[2]
+    assert starts == [0, 1]
 
 
 @pytest.mark.parametrize("priority, scheduler", [("idle", "SCHED_IDLE"), ("normal", "SCHED_OTHER")])
