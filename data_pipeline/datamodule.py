@@ -87,6 +87,7 @@ class ShardDataModule(lightning.LightningDataModule):
         loader = make_dataloader(self.train_set, self.hparams.timeout, self.hparams.worker_priority)
         if self.trainer is not None:  # batches of this epoch trained on, for a checkpoint's data position
             loader.batches_done = lambda: self.trainer.fit_loop.epoch_loop.batch_progress.current.processed
+            loader.epoch_ended = lambda: self.trainer.fit_loop.epoch_loop.batch_progress.is_last_batch
         return loader
 
     def val_dataloader(self):

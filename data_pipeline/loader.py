@@ -345,15 +345,19 @@ class ResumableDataLoader(DataLoader):
     (the data module points it at the Trainer's progress)."""
 
     batches_done: Callable[[], int] = staticmethod(lambda: 0)
+    epoch_ended: Callable[[], bool] = staticmethod(lambda: False)  # the epoch's last batch is done (a limit too)
     worker_priority: str = "normal"  # set by `make_dataloader`, for the stalled-worker message
 
     def state_dict(self) -> dict:
-        return {"epoch": self.dataset.epoch, "batches": int(self.batches_done())}
+        return {"epoch": self.dataset.epoch, "batches": int(self.batches_done()), "epoch_ended": bool(self.epoch_ended())}
 
     def load_state_dict(self, state: dict) -> None:
         epoch, batches = state["epoch"], state["batches"]
-        if batches >= len(self):  # saved after an epoch's last batch: Lightning goes on with the next epoch, from
-            epoch, batches = epoch + 1, 0  # this iterator and without the epoch-start hooks (so without SetEpoch)
+        # saved after an epoch's last batch (all of them, or the last that limit_train_batches lets through):
+        # Lightning goes on with the next epoch, from this iterator and without the epoch-start hooks (so without
+        # SetEpoch)
+        if state.get("epoch_ended", False) or batches >= len(self):
+            epoch, batches = epoch + 1, 0
         self.dataset.resume_at(epoch, batches)
 
     _stream: Iterator[dict | LoaderError] | None = None  # torch's iterator of a continuous dataset, over the epochs

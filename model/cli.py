@@ -83,6 +83,7 @@ def lightning_cli(args: list[str]):
     from model.export import read_checkpoint
     from model.interrupt import FitInterrupted, ResumeNotice
     from model.module import ConfigError, PretrainModule, refuse_other_size
+    from model.last_checkpoint import LastStepCheckpoint
     from model.progress import StepProgressBar
 
     notice = ResumeNotice()
@@ -161,6 +162,7 @@ def lightning_cli(args: list[str]):
                 if type(callback) in (RichProgressBar, TQDMProgressBar):
                     callbacks[index] = StepProgressBar()
             callbacks.append(notice)  # with or without a progress bar
+            callbacks.append(LastStepCheckpoint())  # a fit stopped at max_steps resumes inside its epoch
 
     # `hauwm` passes its own argv on purpose; Lightning would warn that sys.argv differs
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
