@@ -191,6 +191,7 @@ class SequenceDataset(IterableDataset):
         self.urls = [url for url, _ in usable]
         self.batch_size, self.seq_len, self.k_max = batch_size, seq_len, k_max
         self.shuffle, self.shuffle_buffer, self.seed, self.continuous = shuffle, shuffle_buffer, seed, continuous
+        self.split = shards.split  # for error messages: a fit reads train and validation shards
         # shared with the DataLoader workers (created before they start): [epoch, batches of it already trained
         # on per rank (a resumed run)], written by the main process, read by every `__iter__`
         self._position = torch.zeros(2, dtype=torch.int64).share_memory_()
@@ -281,7 +282,7 @@ class SequenceDataset(IterableDataset):
             yield from batches
         except Exception as error:
             info = get_worker_info()
-            who = "the loader" if info is None else f"DataLoader worker {info.id} (pid {os.getpid()})"
+            who = "the loader" if info is None else f"DataLoader worker {info.id} ({self.split} split, pid {os.getpid()})"
             cause = error if isinstance(error, LoaderError) else f"{type(error).__name__}: {error}"
             failure = LoaderError(f"{who}, reading shard {self.reading(worker)}: {cause}")
             if info is None:
@@ -440,7 +441,7 @@ class ResumableDataLoader(DataLoader):
                 if not process.is_alive()]
         if not dead:
             return None
-        return "; ".join(f"DataLoader worker {worker} (pid {process.pid}) died while reading shard "
+        return "; ".join(f"DataLoader worker {worker} ({self.dataset.split} split, pid {process.pid}) died while reading shard "
                          f"{self.dataset.reading(worker)}: {_death_cause(process.exitcode)}"
                          for worker, process in dead) + f"; {RESUME_HINT}"
 

@@ -56,7 +56,7 @@ def test_an_unreadable_shard_is_named_with_the_worker(built_shards, tmp_path, wo
     with pytest.raises(LoaderError) as failure:
         list(make_dataloader(dataset))
     message = str(failure.value)
-    who = r"DataLoader worker [01] \(pid \d+\)" if workers else "the loader"
+    who = r"DataLoader worker [01] \(train split, pid \d+\)" if workers else "the loader"
     assert failure.match(rf"^{who}, reading shard {broken}: ValueError: {broken} is not a readable shard .*--verify")
     assert "Traceback" not in message
 
@@ -65,7 +65,7 @@ def test_frames_that_do_not_decode_name_the_clip_and_its_shard(built_shards, tmp
     shards, broken = copy_with_broken_shard(built_shards, tmp_path, garble_frames)
     dataset = SequenceDataset(shard_set(shards, "train"), batch_size=2, seq_len=8, num_workers=2)
     loader = make_dataloader(dataset)
-    with pytest.raises(LoaderError, match=rf"DataLoader worker [01] \(pid \d+\), reading shard .*: clip \S+ of shard "
+    with pytest.raises(LoaderError, match=rf"DataLoader worker [01] \(train split, pid \d+\), reading shard .*: clip \S+ of shard "
                                           rf"{broken}: its frames do not decode \(ValueError: .*--verify"):
         for epoch in range(3):  # an epoch may leave out the shard's clips
             dataset.set_epoch(epoch)
@@ -88,7 +88,20 @@ def test_a_worker_killed_between_epochs_is_named_when_the_next_epoch_starts(buil
     victim = min({process.pid for process in multiprocessing.active_children()} - before)
     os.kill(victim, signal.SIGKILL)
     dataset.set_epoch(1)
-    with pytest.raises(LoaderError, match=rf"^DataLoader worker [01] \(pid {victim}\) died while reading shard "):
+    with pytest.raises(LoaderError, match=rf"^DataLoader worker [01] \(train split, pid {victim}\) died while reading shard "):
+        list(loader)
+
+
+def test_a_killed_validation_worker_is_named_with_its_split(built_shards):
+    dataset = SequenceDataset(shard_set(built_shards, "validation"), batch_size=2, seq_len=8, num_workers=1,
+                              shuffle=False, batches_per_worker=2)
+    loader = make_dataloader(dataset)
+    before = {process.pid for process in multiprocessing.active_children()}
+    list(loader)
+    victim = min({process.pid for process in multiprocessing.active_children()} - before)
+    os.kill(victim, signal.SIGKILL)
+    with pytest.raises(LoaderError, match=rf"^DataLoader worker 0 \(validation split, pid {victim}\) died while "
+                                          r"reading shard \S+validation-\d+\.tar"):
         list(loader)
 
 
@@ -101,7 +114,7 @@ def test_a_worker_killed_while_the_trainer_waits_for_it_is_named_at_once(built_s
     victim = min({process.pid for process in multiprocessing.active_children()} - before)
     threading.Timer(0.5, os.kill, (victim, signal.SIGKILL)).start()
     started = time.monotonic()
-    with pytest.raises(LoaderError, match=rf"^DataLoader worker [01] \(pid {victim}\) died .*killed by SIGKILL"):
+    with pytest.raises(LoaderError, match=rf"^DataLoader worker [01] \(train split, pid {victim}\) died .*killed by SIGKILL"):
         next(batches)
     assert time.monotonic() - started < 60
 
@@ -122,7 +135,7 @@ def test_a_worker_whose_files_closed_before_it_ended_is_named(built_shards):
     dying.start()
     loader._worker_processes = lambda: [dying]  # as if it were the iterator's worker 0
     report = loader._failure_report(ConnectionResetError(104, "Connection reset by peer"))
-    assert report is not None and report.startswith(f"DataLoader worker 0 (pid {dying.pid}) died while reading "
+    assert report is not None and report.startswith(f"DataLoader worker 0 (train split, pid {dying.pid}) died while reading "
                                                     f"shard (none yet): killed by SIGKILL")
 
 
@@ -154,7 +167,7 @@ def test_a_killed_worker_stops_the_fit_with_its_shard_and_cause_and_the_checkpoi
     with pytest.raises(LoaderError) as failure:
         trainer.fit(RecordingModel(), datamodule=data)
     urls = "|".join(shard_set(built_shards, "train").urls)
-    assert failure.match(rf"^DataLoader worker [01] \(pid {kill.pid}\) died while reading shard ({urls}): killed by "
+    assert failure.match(rf"^DataLoader worker [01] \(train split, pid {kill.pid}\) died while reading shard ({urls}): killed by "
                          rf"{cause}.*resume with `--ckpt_path")
     assert "Traceback" not in str(failure.value)
     saved = torch.load(tmp_path / "last.ckpt", weights_only=False)
