@@ -199,35 +199,41 @@ def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: in
             "peak_gib": peak_memory_gib(device), "cpu_ms": 1000 * (time.process_time() - cpu_started) / steps}
 
 
-def loader_alone(shards: Path, data: dict, workers: int, worker_priority: str, batches: int,
+def loader_alone(shards: Path, data: dict, workers: int, worker_priority: str, total: int,
                  device: torch.device) -> dict:
     """The fit's own train loader with no model (ShardDataModule's: persistent workers, pinned memory on a GPU),
-    each batch copied to `device`, epochs advanced as SetEpoch does → batches/s over `batches` batches after
-    FIT_WARM_UP (whole epochs for short epochs): the most steps/s the fit could reach with these workers."""
+    each batch copied to `device`, epochs advanced as SetEpoch does, over the `total` batches a fit of `total`
+    steps reads → batches/s after the same warm-up as the fit's: the most steps/s the fit could reach with these
+    workers."""
     datamodule = ShardDataModule(**{**data, "shards": str(shards), "num_workers": workers,
                                     "worker_priority": worker_priority})
     datamodule.setup("fit")
     loader = datamodule.train_dataloader()
-    per_epoch = len(loader)
-    warm = FIT_WARM_UP if per_epoch >= batches else whole_epochs(FIT_WARM_UP, per_epoch)
     times, epoch = [], 0
-    while len(times) < warm + batches:
+    while len(times) < total:
         datamodule.train_set.set_epoch(epoch)
         for batch in loader:
             for value in batch.values():
                 if torch.is_tensor(value):
                     value.to(device, non_blocking=True)
             times.append(time.perf_counter())
-            if len(times) == warm + batches:
+            if len(times) == total:
                 break
         epoch += 1
     synchronize(device)
-    return {"batches_per_s": batches / (time.perf_counter() - times[warm - 1]), "per_epoch": per_epoch}
+    warm = fit_warm_up(len(loader), total)
+    return {"batches_per_s": (total - warm) / (time.perf_counter() - times[warm - 1]), "per_epoch": len(loader)}
 
 
 def whole_epochs(steps: int, per_epoch: int) -> int:
     """At least `steps` steps, rounded up to whole epochs."""
     return math.ceil(steps / per_epoch) * per_epoch
+
+
+def fit_warm_up(per_epoch: int, total: int) -> int:
+    """The steps of a `total`-step fit (or loader run) left out of its timing: FIT_WARM_UP (at most half of them)
+    within one long epoch, whole epochs for short epochs."""
+    return min(FIT_WARM_UP, total // 2) if per_epoch >= total else whole_epochs(FIT_WARM_UP, per_epoch)
 
 
 def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max_steps: int, precision: str,
@@ -244,7 +250,7 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
     cli = lightning_cli(args)
     timer = next(callback for callback in cli.trainer.callbacks if type(callback).__name__ == "StepTimer")
     per_epoch = cli.trainer.num_training_batches
-    warm = min(FIT_WARM_UP, max_steps // 2) if per_epoch >= max_steps else whole_epochs(FIT_WARM_UP, per_epoch)
+    warm = fit_warm_up(per_epoch, max_steps)
     times, cpu_times = timer.times, timer.cpu_times
     return {"steps_per_s": (len(times) - warm) / (times[-1] - times[warm - 1]), "steps_per_epoch": per_epoch,
             "cpu_ms": 1000 * (cpu_times[-1] - cpu_times[warm - 1]) / (len(times) - warm),

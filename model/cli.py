@@ -70,6 +70,11 @@ def not_an_advert(record: logging.LogRecord) -> bool:
     return "litlogger" not in str(record.msg)
 
 
+def checkpoint_dir(root_dir: str | None) -> Path:
+    """Where a fit in `trainer.default_root_dir` keeps its checkpoints (last.ckpt among them)."""
+    return Path(root_dir or ".") / "checkpoints"
+
+
 def lightning_cli(args: list[str]):
     """Run a LightningCLI subcommand over PretrainModule and the shard DataModule; -> the LightningCLI. Ctrl-C during
     a fit raises FitInterrupted, once ResumeNotice has said where to resume from."""
@@ -99,7 +104,7 @@ def lightning_cli(args: list[str]):
             subcommand = self.config.get("subcommand") or ""
             config = self.config.get(subcommand, {})
             ckpt_path = config.get("ckpt_path") if config else None
-            last = Path(config["trainer"]["default_root_dir"] or ".") / "checkpoints" / "last.ckpt" if config else None
+            last = checkpoint_dir(config["trainer"]["default_root_dir"]) / "last.ckpt" if config else None
             if ckpt_path == "last":  # Lightning's word for the newest checkpoint: this run's, if it has one yet
                 ckpt_path = config["ckpt_path"] = str(last) if last.is_file() else None
                 rank_zero_only(print)(f"hauwm pretrain {subcommand}: --ckpt_path last: " + (
@@ -112,8 +117,9 @@ def lightning_cli(args: list[str]):
                 return super()._parse_ckpt_path()
             checkpoint = read_checkpoint(ckpt_path)[0]
             max_steps = config["trainer"]["max_steps"]
-            if subcommand == "fit" and 0 <= max_steps <= checkpoint.get("global_step", 0):
-                rank_zero_only(print)(f"hauwm pretrain fit: {ckpt_path} is at step {checkpoint['global_step']}, and "
+            step = checkpoint.get("global_step", 0)
+            if subcommand == "fit" and 0 <= max_steps <= step:
+                rank_zero_only(print)(f"hauwm pretrain fit: {ckpt_path} is at step {step}, and "
                                       f"--trainer.max_steps is {max_steps}: nothing to train (raise max_steps to go on)",
                                       file=sys.stderr)
             saved = checkpoint["hyper_parameters"]
@@ -156,7 +162,7 @@ def lightning_cli(args: list[str]):
         def before_fit(self) -> None:
             for callback in self.trainer.checkpoint_callbacks:
                 if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
-                    callback.dirpath = str(Path(self.trainer.default_root_dir) / "checkpoints")
+                    callback.dirpath = str(checkpoint_dir(self.trainer.default_root_dir))
             callbacks = self.trainer.callbacks
             for index, callback in enumerate(callbacks):  # Lightning's own default bar; a user's choice stays
                 if type(callback) in (RichProgressBar, TQDMProgressBar):
