@@ -43,6 +43,9 @@ import statistics
 import sys
 import tempfile
 import time
+import traceback
+import warnings
+from collections import Counter
 from pathlib import Path
 
 import lightning as L
@@ -65,6 +68,7 @@ SAMPLE_CLIPS = 344  # 258 train clips (the sample data keeps 1/8 each for valida
 LONG_EPOCH_COPIES = 63  # 63 × 258 train clips: 126 batches of 32 per worker, 504 steps an epoch with 4 workers
 WARM_UP = 3  # bare steps before the timing: compiling and CUDA-graph recording happen here
 FIT_WARM_UP = 20  # fit steps before the timing (rounded up to whole epochs for short epochs)
+PROFILED_STEPS = 10  # bare steps profiled after the timed ones (a GPU): the device's busy time a step
 
 
 class StepTimer(L.Callback):
@@ -85,6 +89,96 @@ class StepTimer(L.Callback):
     def on_train_end(self, trainer, pl_module):
         synchronize(pl_module.device)
         self.times[-1] = time.perf_counter()
+
+
+class StepDiagnosis(L.Callback):
+    """Where a fit's step time goes, in two windows after FIT_WARM_UP steps (short: each slows the fit).
+
+    SYNC_STEPS steps under CUDA's sync debug mode (a GPU only): every operation that makes the host wait for the
+    GPU, counted by where it was called (the innermost frame of this repository, and of torch or Lightning) —
+    with none, the host queues steps ahead of the GPU; with one a step, host and GPU take turns. In the same window,
+    the host's wall time inside the step (on_train_batch_start to _end: training_step and its hooks) and between
+    steps (Lightning's loop, the next batch from the loader, its copy to the device). Then PROFILE_STEPS steps under
+    torch.profiler: the device's busy time per step (the union of its kernels' intervals), the time spent in CUDA
+    calls that wait (synchronize, blocking copies), and the host operators that take the most time."""
+
+    SYNC_STEPS, PROFILE_STEPS = 30, 10
+
+    def __init__(self):
+        self.sync_sites: Counter[str] = Counter()
+        self.inside, self.between = [], []  # host seconds per step, in the sync window
+        self.profile: dict | None = None
+        self._started = self._ended = 0.0
+        self._catcher = self._profiler = None
+
+    def window(self, step: int) -> str | None:
+        sync_from = FIT_WARM_UP
+        profile_from = sync_from + self.SYNC_STEPS
+        if sync_from <= step < profile_from:
+            return "sync"
+        return "profile" if profile_from <= step < profile_from + self.PROFILE_STEPS else None
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        step, device = trainer.global_step, pl_module.device
+        self._started = time.perf_counter()
+        if self.window(step) == "sync" and self.window(step - 1) != "sync":
+            if device.type == "cuda":
+                self._catcher = warnings.catch_warnings()
+                self._catcher.__enter__()
+                warnings.simplefilter("always")
+                warnings.showwarning = self.record_sync
+                torch.cuda.set_sync_debug_mode("warn")
+        elif self.window(step) == "sync":
+            self.between.append(self._started - self._ended)
+        if self.window(step) == "profile" and self.window(step - 1) != "profile":
+            activities = [torch.profiler.ProfilerActivity.CPU]
+            if device.type == "cuda":
+                activities.append(torch.profiler.ProfilerActivity.CUDA)
+            self._profiler = torch.profiler.profile(activities=activities)
+            self._profiler.__enter__()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        step = trainer.global_step - 1  # the step just done (global_step counts it already)
+        self._ended = time.perf_counter()
+        if self.window(step) == "sync":
+            self.inside.append(self._ended - self._started)
+            if self.window(step + 1) != "sync" and self._catcher is not None:
+                torch.cuda.set_sync_debug_mode("default")
+                self._catcher.__exit__(None, None, None)
+                self._catcher = None
+        if self.window(step) == "profile" and self.window(step + 1) != "profile":
+            synchronize(pl_module.device)
+            self._profiler.__exit__(None, None, None)
+            self.profile = summarise_profile(self._profiler, self.PROFILE_STEPS)
+            self._profiler = None
+
+    def record_sync(self, message, category, filename, lineno, file=None, line=None):
+        if "synchroniz" not in str(message):
+            return
+        frames = traceback.extract_stack()[:-1]
+        ours = [f for f in frames if f.filename.startswith(str(ROOT)) and "/bench/" not in f.filename]
+        library = [f for f in frames if "/torch/" in f.filename or "/lightning/" in f.filename]
+        where = lambda frame: f"{Path(frame.filename).name}:{frame.lineno} ({frame.name})"  # noqa: E731
+        self.sync_sites[" via ".join(where(f[-1]) for f in (ours, library) if f) or f"{filename}:{lineno}"] += 1
+
+
+def summarise_profile(profiler: torch.profiler.profile, steps: int) -> dict:
+    """Per step: the device's busy ms (union of kernel intervals), ms in waiting CUDA calls, the top host ops."""
+    events = profiler.events()
+    kernels = sorted((e.time_range.start, e.time_range.end) for e in events
+                     if e.device_type == torch.autograd.DeviceType.CUDA)
+    busy, covered_to = 0.0, -math.inf
+    for start, end in kernels:
+        busy += max(0.0, end - max(start, covered_to))
+        covered_to = max(covered_to, end)
+    waits = Counter()
+    for event in events:
+        if event.name in ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cudaMemcpy"):
+            waits[event.name] += event.time_range.elapsed_us()
+    host = sorted(profiler.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)[:6]
+    return {"device_busy_ms": busy / 1000 / steps,
+            "waits": {name: us / 1000 / steps for name, us in waits.items()},
+            "host_top": [(e.key, e.self_cpu_time_total / 1000 / steps, e.count / steps) for e in host]}
 
 
 def synchronize(device: torch.device) -> None:
@@ -195,8 +289,19 @@ def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: in
         step(index)
     synchronize(device)
     seconds = (time.perf_counter() - started) / steps
+    cpu_ms = 1000 * (time.process_time() - cpu_started) / steps
+    busy_ms = math.nan
+    if device.type == "cuda":  # the device's own time a step: near ms/step, the GPU is what limits
+        try:
+            with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as profiler:
+                for index in range(WARM_UP + steps, WARM_UP + steps + PROFILED_STEPS):
+                    step(index)
+                synchronize(device)
+            busy_ms = summarise_profile(profiler, PROFILED_STEPS)["device_busy_ms"]
+        except Exception as error:  # noqa: BLE001 — a diagnostic: the timing above stands without it
+            print(f"(profiling the bare step failed: {type(error).__name__}: {error})")
     return {"ms": 1000 * seconds, "steps_per_s": 1 / seconds, "warm_up_s": warm_up,
-            "peak_gib": peak_memory_gib(device), "cpu_ms": 1000 * (time.process_time() - cpu_started) / steps}
+            "peak_gib": peak_memory_gib(device), "cpu_ms": cpu_ms, "busy_ms": busy_ms}
 
 
 def loader_alone(shards: Path, data: dict, workers: int, worker_priority: str, total: int,
@@ -237,8 +342,9 @@ def fit_warm_up(per_epoch: int, total: int) -> int:
 
 
 def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max_steps: int, precision: str,
-             log_every: int, root: Path, device: torch.device) -> dict:
-    """`hauwm pretrain fit` (model.cli's LightningCLI) on one device → steps/s after the warm-up and more."""
+             log_every: int, root: Path, device: torch.device, diagnose: bool = False) -> dict:
+    """`hauwm pretrain fit` (model.cli's LightningCLI) on one device → steps/s after the warm-up and more; with
+    `diagnose`, StepDiagnosis's findings too (its windows slow the fit: its steps/s is not a figure)."""
     reset(device)
     args = ["fit", "--config", str(config), "--data.shards", str(shards), "--data.num_workers", str(workers),
             "--data.worker_priority", worker_priority,
@@ -246,9 +352,10 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
             "--trainer.log_every_n_steps", str(log_every),
             "--trainer.strategy", "auto", "--trainer.limit_val_batches", "0", "--trainer.enable_progress_bar",
             "false", "--trainer.enable_model_summary", "false", "--trainer.default_root_dir", str(root),
-            "--trainer.callbacks+=bench_gpu.StepTimer"]
+            "--trainer.callbacks+=bench_gpu.StepTimer"] + (["--trainer.callbacks+=bench_gpu.StepDiagnosis"] if diagnose else [])
     cli = lightning_cli(args)
-    timer = next(callback for callback in cli.trainer.callbacks if type(callback).__name__ == "StepTimer")
+    by_name = {type(callback).__name__: callback for callback in cli.trainer.callbacks}  # bench_gpu's own copies
+    timer = by_name["StepTimer"]
     per_epoch = cli.trainer.num_training_batches
     warm = fit_warm_up(per_epoch, max_steps)
     times, cpu_times = timer.times, timer.cpu_times
@@ -256,7 +363,31 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
             "cpu_ms": 1000 * (cpu_times[-1] - cpu_times[warm - 1]) / (len(times) - warm),
             "timed_steps": len(times) - warm, "first_step_s": times[0] - timer.start,
             "scaler_skips": int(cli.model.scaler_skips), "nonfinite_steps": int(cli.model.nonfinite_steps),
-            "peak_gib": peak_memory_gib(device)}
+            "peak_gib": peak_memory_gib(device), "diagnosis": by_name.get("StepDiagnosis")}
+
+
+def print_diagnosis(diagnosis: StepDiagnosis, reference: dict | None, device: torch.device) -> None:
+    """StepDiagnosis's findings, with the bare compiled step's ms for scale."""
+    print(f"\nwhere a fit step's time goes (long epochs; steps {FIT_WARM_UP}–{FIT_WARM_UP + diagnosis.SYNC_STEPS - 1}"
+          f" timed by the host, then {diagnosis.PROFILE_STEPS} profiled; bare step "
+          + (f"{reference['ms']:.1f} ms)" if reference else "not timed)"))
+    print(f"  host, inside the step (training_step + hooks): median {1000 * statistics.median(diagnosis.inside):.2f} ms;"
+          f" between steps (loop, next batch, copy): median {1000 * statistics.median(diagnosis.between):.2f} ms")
+    if device.type == "cuda":
+        total = sum(diagnosis.sync_sites.values())
+        print(f"  host waits for the GPU (sync debug mode): {total} in {diagnosis.SYNC_STEPS} steps"
+              + ("" if total else " — none: the host can queue steps ahead"))
+        for site, count in diagnosis.sync_sites.most_common(8):
+            print(f"    {count:>4}  {site}")
+    profile = diagnosis.profile
+    if profile is None:
+        print("  profile: not taken (the fit ended before its window)")
+        return
+    if device.type == "cuda":
+        waits = ", ".join(f"{name} {ms:.2f}" for name, ms in profile["waits"].items()) or "none"
+        print(f"  profiled, per step: device busy {profile['device_busy_ms']:.2f} ms; waiting CUDA calls (ms): {waits}")
+    print("  host operators by own time, per step: " + "; ".join(
+        f"{name} {ms:.2f} ms ×{count:.0f}" for name, ms, count in profile["host_top"]))
 
 
 def main() -> None:
@@ -318,7 +449,8 @@ def main() -> None:
     print(f"shards: {shards} ({time.perf_counter() - started:.0f} s)", flush=True)
 
     print(f"\n{'bare step':<24} {'L':>3} {'ms/step':>8} {'steps/s':>8} {'warm-up s':>10} {'peak GiB':>9} "
-          f"{'host ms':>8}  (host ms: the process's CPU time a step, all threads)")
+          f"{'host ms':>8} {'GPU busy ms':>11}  (host ms: the process's CPU time a step, all threads; GPU busy: "
+          "its kernels' time a step, profiled)")
     bare = {}
     for length in lengths:
         batches = load_batches(shards, batch_size, length, k_max, 4, device)
@@ -326,7 +458,8 @@ def main() -> None:
             result = bare[length, mode] = bare_steps(settings, batches, mode, steps, device)
             label = "eager" if mode == "off" else f"compiled ({mode})"
             print(f"{label:<24} {length:>3} {result['ms']:8.1f} {result['steps_per_s']:8.1f} "
-                  f"{result['warm_up_s']:10.1f} {result['peak_gib']:9.2f} {result['cpu_ms']:8.1f}", flush=True)
+                  f"{result['warm_up_s']:10.1f} {result['peak_gib']:9.2f} {result['cpu_ms']:8.1f} "
+                  f"{result['busy_ms']:11.2f}", flush=True)
 
     long_epochs = linked_copies(shards, work / "long-epochs", LONG_EPOCH_COPIES)
     per_epoch = len(SequenceDataset(shard_set(shards, "train"), batch_size=batch_size, seq_len=fit_length,
@@ -380,6 +513,14 @@ def main() -> None:
         shown = ", ".join(f"{ratio:.2f}" for ratio in values)
         print(f"{label}, {fit_workers} workers: {statistics.median(values):.2f}× the {kind}"
               + (f" (median of {shown})" if len(values) > 1 else ""))
+    try:  # last: a profiler failure must not cost the figures above
+        diagnosis = real_fit(config, long_epochs, config_workers if gpu else workers, worker_priority,
+                             FIT_WARM_UP + StepDiagnosis.SYNC_STEPS + StepDiagnosis.PROFILE_STEPS + 2,
+                             settings["precision"], log_every, work / "fit-diagnosis", device, diagnose=True)
+        print_diagnosis(diagnosis["diagnosis"], reference, device)
+    except Exception as error:  # noqa: BLE001 — a diagnostic, reported, never fatal
+        print(f"\nwhere a fit step's time goes: failed ({type(error).__name__}: {error})")
+
     print(f"\nwall time {time.perf_counter() - started:.0f} s; load average {os.getloadavg()[0]:.1f} at the end")
 
 
