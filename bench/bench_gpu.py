@@ -270,8 +270,7 @@ def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: in
         world_model_opt.zero_grad(set_to_none=True)
         scaler.scale(terms["loss"]).backward()
         scaler.unscale_(world_model_opt)
-        norm = torch.nn.utils.clip_grad_norm_(module.world_model.parameters(), module.hparams.grad_clip, foreach=True)
-        skip = ~torch.isfinite(norm)
+        skip = ~torch.isfinite(module.clip_world_model_gradients())
         if scaler.is_enabled():
             scaler.step(world_model_opt)
             scaler.update()

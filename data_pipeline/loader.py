@@ -145,12 +145,18 @@ def collate(sequences: list[dict]) -> dict:
         # the decoded [L, H, W, 3] frames are written transposed straight into their slot (no second pass)
         decode_sequence(sequence, sequence["indices"], out=slot.transpose(0, 2, 3, 1))
     indices = np.stack([s["indices"] for s in sequences])  # [B, L]
+    batch, length = indices.shape
+    # the four integer fields are contiguous views of one block: a batch crosses from a DataLoader worker to the
+    # training process as two shared-memory regions instead of five (each region costs the receiver a round trip)
+    block = torch.from_numpy(np.concatenate([gaps_of(indices).ravel(), indices.ravel(),
+                                             [s["num_frames"] for s in sequences], [s["label"] for s in sequences]]))
+    gaps, ids, num_frames, label = block.split([batch * length, batch * length, batch, batch])
     return {
         "frames": frames,  # uint8 [B, L, 3, H, W]
-        "gaps": torch.from_numpy(gaps_of(indices)),  # int64 [B, L], gaps[:, 0] == 0
-        "indices": torch.from_numpy(indices),  # int64 [B, L]
-        "num_frames": torch.tensor([s["num_frames"] for s in sequences], dtype=torch.int64),  # [B]
-        "label": torch.tensor([s["label"] for s in sequences], dtype=torch.int64),  # [B]
+        "gaps": gaps.view(batch, length),  # int64 [B, L], gaps[:, 0] == 0
+        "indices": ids.view(batch, length),  # int64 [B, L]
+        "num_frames": num_frames,  # int64 [B]
+        "label": label,  # int64 [B]
         "id": [s["id"] for s in sequences],
     }
 
@@ -310,6 +316,11 @@ def _init_worker(priority: str, _: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle; it stops the workers
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
+    # a batch's tensors reach the training process as named shared memory (torch_shm_manager cleans up after a
+    # crash) instead of one file descriptor each, handed over through a socket round trip with a handshake in
+    # Python: the training process's receiving thread then holds the GIL far less, which on a GPU is the step's
+    # own host time (bench/README.md, "Pre-training on one GPU")
+    torch.multiprocessing.set_sharing_strategy("file_system")
     if priority == "idle":
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 

@@ -151,6 +151,7 @@ class PretrainModule(L.LightningModule):
         self.save_hyperparameters({"world_model": world_model.to_dict()})  # plain data: weights_only=True loads it
         self.automatic_optimization = False
         self.world_model = WorldModel(world_model)
+        self._clipped = list(self.world_model.parameters())  # walked once: the module tree is fixed, moves keep them
         start = math.log(lambda_init) if lambda_init > 0 else 0.0
         # not trained by backprop: its gradient is set in closed form (dual_step), so DDP leaves it alone
         self.log_lambda = nn.Parameter(torch.tensor(start), requires_grad=False)
@@ -263,11 +264,15 @@ class PretrainModule(L.LightningModule):
         scaler = self._grad_scaler()
         if scaler is not None:  # fused Adam would unscale inside its step, after the clipping: unscale here instead
             scaler.unscale_(optimizer)
-        norm = torch.nn.utils.clip_grad_norm_(self.world_model.parameters(), self.hparams.grad_clip, foreach=True)
+        norm = self.clip_world_model_gradients()
         self._grad_norm = norm.detach()
         self._skip = ~torch.isfinite(norm)  # identical on every rank: gradients are all-reduced
         if scaler is None:  # read by the fused step right after this hook (a scaler hands it its own, equal flag)
             optimizer.found_inf = self._skip.float()
+
+    def clip_world_model_gradients(self) -> torch.Tensor:
+        """Clip the world model's gradients to norm grad_clip → their norm before clipping (a device scalar)."""
+        return torch.nn.utils.clip_grad_norm_(self._clipped, self.hparams.grad_clip, foreach=True)
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         refuse_other_size(checkpoint.get("hyper_parameters", {}), self.world_model.config, "the checkpoint")

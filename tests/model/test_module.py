@@ -164,6 +164,19 @@ def fit_poisoned(sizes: WorldModelConfig, batches: list[dict], precision: MixedP
     return module, [step for step in range(len(batches)) if unchanged(states[step], states[step + 1])]
 
 
+def test_gradient_clipping_reaches_every_world_model_weight_after_the_module_moves(small_sizes):
+    """The clipped parameters are listed once, when the module is built: a move or cast (Lightning's .to(device))
+    must leave that list the world model's own tensors."""
+    module = PretrainModule(small_sizes, grad_clip=0.5).double()
+    weights = list(module.world_model.parameters())
+    for weight in weights:
+        weight.grad = torch.ones_like(weight)
+    norm = module.clip_world_model_gradients()
+    assert norm.item() == pytest.approx(math.sqrt(sum(weight.numel() for weight in weights)))
+    clipped = torch.linalg.vector_norm(torch.cat([weight.grad.flatten() for weight in weights]))
+    assert clipped.item() == pytest.approx(0.5, rel=1e-4)
+
+
 def test_non_finite_steps_are_skipped_and_counted(small_sizes, batch_factory):
     module, skipped = fit_poisoned(small_sizes, [batch_factory(seed=i) for i in range(4)], None)
     assert skipped == [PoisonedStep.poisoned_step]  # weights, log λ, Adam moments and step counts stay; training goes on
