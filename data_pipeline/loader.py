@@ -302,7 +302,7 @@ WORKER_PRIORITIES = ("normal", "idle")
 def check_worker_priority(priority: str) -> None:
     """`normal`: workers compete for cores with the training step. `idle`: workers run under Linux's `SCHED_IDLE`,
     only on cores the training process leaves free — on a CPU-only run with few cores the step keeps its threads
-    (bench/README.md, "Pre-training on one GPU"); on a node fully loaded by other jobs such workers may starve."""
+    (bench/README.md, "Pre-training speed on a GPU"); on a node fully loaded by other jobs such workers may starve."""
     if priority not in WORKER_PRIORITIES:
         raise LoaderError(f"--data.worker_priority must be one of {', '.join(WORKER_PRIORITIES)}, got {priority!r}")
     if priority == "idle" and not hasattr(os, "SCHED_IDLE"):
@@ -319,7 +319,7 @@ def _init_worker(priority: str, _: int) -> None:
     # a batch's tensors reach the training process as named shared memory (torch_shm_manager cleans up after a
     # crash) instead of one file descriptor each, handed over through a socket round trip with a handshake in
     # Python: the training process's receiving thread then holds the GIL far less, which on a GPU is the step's
-    # own host time (bench/README.md, "Pre-training on one GPU")
+    # own host time (bench/README.md, "Pre-training speed on a GPU")
     torch.multiprocessing.set_sharing_strategy("file_system")
     if priority == "idle":
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
