@@ -155,6 +155,12 @@ def lightning_cli(args: list[str]):
             if no_cuda and str(trainer.devices) == "-1":  # Lightning's "every GPU"; its CPU accelerator raises a TypeError
                 raise ConfigError("trainer.devices -1 means every GPU, and this run is on the CPU: pass --trainer.devices "
                                   "1 (or N processes)")
+            checkpointers = [callback for callback in trainer.callbacks or []
+                             if str(getattr(callback, "class_path", "")).endswith(".ModelCheckpoint")]
+            if trainer.enable_checkpointing is False and checkpointers:  # Lightning would refuse the pair
+                print("hauwm pretrain: --trainer.enable_checkpointing false: the config's ModelCheckpoint is left "
+                      "out, so this run writes no checkpoint and cannot be resumed", file=sys.stderr)
+                trainer.callbacks = [callback for callback in trainer.callbacks if callback not in checkpointers]
             if str(trainer.precision) in ("16-mixed", "16") and no_cuda:
                 print("hauwm pretrain: float16 autocast needs a GPU; using bf16-mixed on CPU", file=sys.stderr)
                 trainer.precision = "bf16-mixed"

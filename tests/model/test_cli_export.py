@@ -291,6 +291,16 @@ def test_logging_every_n_steps_logs_every_term_and_counter_at_those_steps(built_
     assert scalars(root, "train/nonfinite_steps")[-1] == 0
 
 
+def test_checkpointing_turned_off_drops_the_configs_checkpoint_callback(built_shards, tmp_path, capsys):
+    """Lightning refuses enable_checkpointing=False beside the config's ModelCheckpoint (a traceback); the CLI leaves
+    the callback out and says what that costs."""
+    root = tmp_path / "no-checkpoints"
+    assert fit(built_shards, root, "--trainer.enable_checkpointing", "false", "--trainer.max_steps", "2",
+               "--trainer.limit_val_batches", "0") == 0
+    assert "writes no checkpoint and cannot be resumed" in capsys.readouterr().err
+    assert not (root / "checkpoints").exists()
+
+
 def test_16_mixed_asked_on_a_cpu_trains_in_bf16_mixed_with_float32_distributions(built_shards, tmp_path, capsys):
     """The GPU's 16-mixed path has a CPU equivalent: the CLI switches to bf16-mixed, says so, and training
     stays finite with the distribution parameters in float32 under autocast."""
