@@ -81,3 +81,13 @@ def test_the_scratch_agent_says_it_does_not_use_the_export(monkeypatch, capsys):
     assert main(["--config", "configs/finetune/demo.yaml", "--set", "agent=scratch", "--pretrained", "exports/x"]) == 0
     assert given == [None]  # the run is handed no export it would ignore
     assert "the scratch agent does not use --pretrained exports/x" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("subcommand, unit", [("offline", "updates"), ("imitate", "env steps")])
+def test_a_subcommands_help_says_what_it_does_and_what_steps_count(subcommand, unit, capsys):
+    with pytest.raises(SystemExit) as done:
+        main([subcommand, "--help"])
+    assert done.value.code == 0
+    shown = capsys.readouterr().out
+    assert f"hauwm finetune {subcommand} --config configs/" in shown and f"--steps counts {unit};" in shown
+    assert "hauwm finetune evaluate" not in shown  # the other commands' examples stay in `hauwm finetune --help`
