@@ -9,7 +9,8 @@ backward (GradScaler under 16-mixed), unscale, clip, the fused Adam's step and Î
 `training_step` does, without Lightning â€” on batches read from the shards beforehand, in the config's
 precision. Per length: ms per step and steps/s (the mean of --steps steps after 3 warm-up steps), the wall
 time of the 3 warm-up steps (compiling, CUDA-graph recording), peak memory, and the process's CPU time per
-step, all threads ("host ms": near the wall time per step on a GPU, the step is bound by the host).
+step, all threads ("host ms": near the wall time per step on a GPU, the step is bound by the host); on a GPU
+also the device's busy time per step over 10 profiled steps ("GPU busy ms": near ms/step, the GPU is the limit).
 
 Real fit: `hauwm pretrain fit` through model.cli's LightningCLI with configs/pretrain/ssv2.yaml (GPU) or
 tiny.yaml (CPU) on one device: its precision, model.compile and log_every_n_steps, --workers DataLoader
@@ -25,6 +26,8 @@ target: the fit with 2 workers against the bare step loop on the same batches (a
 A shared CPU host drifts by more than that margin within minutes, so on the CPU every fit is bracketed: the
 bare eager loop is timed again right after it, each fit is compared with the mean of the bare runs just before
 and just after, and the whole sequence runs --rounds times (default 3) with the median ratio printed last.
+Last, where a fit step's time goes (StepDiagnosis, one more short fit on long epochs): the operations that make
+the host wait for the GPU, by call site; the host's time inside and between steps; a profiled window.
 Shards: built from `hauwm shards sample-data --clips 344` in a temporary directory, or --shards DIR.
 """
 
