@@ -113,6 +113,7 @@ class StepDiagnosis(L.Callback):
         self.profile: dict | None = None
         self._started = self._ended = 0.0
         self._catcher = self._profiler = None
+        self._show_warning = warnings.showwarning
 
     def window(self, step: int) -> str | None:
         sync_from = FIT_WARM_UP
@@ -129,7 +130,7 @@ class StepDiagnosis(L.Callback):
                 self._catcher = warnings.catch_warnings()
                 self._catcher.__enter__()
                 warnings.simplefilter("always")
-                warnings.showwarning = self.record_sync
+                self._show_warning, warnings.showwarning = warnings.showwarning, self.record_sync
                 torch.cuda.set_sync_debug_mode("warn")
         elif self.window(step) == "sync":
             self.between.append(self._started - self._ended)
@@ -156,13 +157,15 @@ class StepDiagnosis(L.Callback):
             self._profiler = None
 
     def record_sync(self, message, category, filename, lineno, file=None, line=None):
+        """warnings.showwarning in the sync window: a synchronising call is counted by where it was made (the
+        innermost frame of this repository, then of torch or Lightning); any other warning is shown as usual."""
         if "synchroniz" not in str(message):
-            return
+            return self._show_warning(message, category, filename, lineno, file, line)
         frames = traceback.extract_stack()[:-1]
         ours = [f for f in frames if f.filename.startswith(str(ROOT)) and "/bench/" not in f.filename]
         library = [f for f in frames if "/torch/" in f.filename or "/lightning/" in f.filename]
-        where = lambda frame: f"{Path(frame.filename).name}:{frame.lineno} ({frame.name})"  # noqa: E731
-        self.sync_sites[" via ".join(where(f[-1]) for f in (ours, library) if f) or f"{filename}:{lineno}"] += 1
+        site = " via ".join(f"{Path(f.filename).name}:{f.lineno} ({f.name})" for f in ours[-1:] + library[-1:])
+        self.sync_sites[site or f"{filename}:{lineno}"] += 1
 
 
 def summarise_profile(profiler: torch.profiler.profile, steps: int) -> dict:
