@@ -316,11 +316,6 @@ def _init_worker(priority: str, _: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle; it stops the workers
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
-    # a batch's tensors reach the training process as named shared memory (torch_shm_manager cleans up after a
-    # crash) instead of one file descriptor each, handed over through a socket round trip with a handshake in
-    # Python: the training process's receiving thread then holds the GIL far less, which on a GPU is the step's
-    # own host time (bench/README.md, "Pre-training speed on a GPU")
-    torch.multiprocessing.set_sharing_strategy("file_system")
     if priority == "idle":
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
