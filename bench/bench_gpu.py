@@ -103,67 +103,91 @@ class StepDiagnosis(L.Callback):
     the host's wall time inside the step (on_train_batch_start to _end: training_step and its hooks) and between
     steps (Lightning's loop, the next batch from the loader, its copy to the device). Then PROFILE_STEPS steps under
     torch.profiler: the device's busy time per step (the union of its kernels' intervals), the time spent in CUDA
-    calls that wait (synchronize, blocking copies), and the host operators that take the most time."""
+    calls that wait (synchronize, blocking copies), and the host operators that take the most time. A window the
+    fit leaves early (it ended, or raised) is closed at teardown, so nothing of it outlives the fit."""
 
     SYNC_STEPS, PROFILE_STEPS = 30, 10
 
     def __init__(self):
         self.sync_sites: Counter[str] = Counter()
-        self.inside, self.between = [], []  # host seconds per step, in the sync window
+        self.inside: list[float] = []  # host seconds inside each step of the sync window
+        self.between: list[float] = []  # host seconds from the end of a step to the start of the next, same window
         self.profile: dict | None = None
         self._started = self._ended = 0.0
-        self._catcher = self._profiler = None
+        self._catcher: warnings.catch_warnings | None = None
+        self._profiler: torch.profiler.profile | None = None
         self._show_warning = warnings.showwarning
 
     def window(self, step: int) -> str | None:
+        """"sync", "profile" or None: the window the 0-based step `step` falls in."""
         sync_from = FIT_WARM_UP
         profile_from = sync_from + self.SYNC_STEPS
         if sync_from <= step < profile_from:
             return "sync"
         return "profile" if profile_from <= step < profile_from + self.PROFILE_STEPS else None
 
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         step, device = trainer.global_step, pl_module.device
         self._started = time.perf_counter()
-        if self.window(step) == "sync" and self.window(step - 1) != "sync":
-            if device.type == "cuda":
-                self._catcher = warnings.catch_warnings()
-                self._catcher.__enter__()
-                warnings.simplefilter("always")
-                self._show_warning, warnings.showwarning = warnings.showwarning, self.record_sync
-                torch.cuda.set_sync_debug_mode("warn")
-        elif self.window(step) == "sync":
-            self.between.append(self._started - self._ended)
-        if self.window(step) == "profile" and self.window(step - 1) != "profile":
+        if self.window(step) == "sync":
+            if step > 0:
+                self.between.append(self._started - self._ended)
+            if self._catcher is None and device.type == "cuda":
+                self.open_sync_window()
+        if self.window(step) == "profile" and self._profiler is None:
             activities = [torch.profiler.ProfilerActivity.CPU]
             if device.type == "cuda":
                 activities.append(torch.profiler.ProfilerActivity.CUDA)
-            self._profiler = torch.profiler.profile(activities=activities)
+            self._profiler = torch.profiler.profile(activities=activities, acc_events=True)
             self._profiler.__enter__()
 
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         step = trainer.global_step - 1  # the step just done (global_step counts it already)
         self._ended = time.perf_counter()
         if self.window(step) == "sync":
             self.inside.append(self._ended - self._started)
-            if self.window(step + 1) != "sync" and self._catcher is not None:
-                torch.cuda.set_sync_debug_mode("default")
-                self._catcher.__exit__(None, None, None)
-                self._catcher = None
+            if self.window(step + 1) != "sync":
+                self.close_sync_window()
         if self.window(step) == "profile" and self.window(step + 1) != "profile":
             synchronize(pl_module.device)
-            self._profiler.__exit__(None, None, None)
-            self.profile = summarise_profile(self._profiler, self.PROFILE_STEPS)
-            self._profiler = None
+            self.close_profile(self.PROFILE_STEPS)
 
-    def record_sync(self, message, category, filename, lineno, file=None, line=None):
+    def teardown(self, trainer, pl_module, stage) -> None:
+        self.close_sync_window()
+        if self._profiler is not None:  # the fit ended inside the window: its figures would be of fewer steps
+            self.close_profile(steps=0)
+
+    def open_sync_window(self) -> None:
+        self._catcher = warnings.catch_warnings()
+        self._catcher.__enter__()
+        warnings.filterwarnings("always", message=".*synchroniz")
+        self._show_warning, warnings.showwarning = warnings.showwarning, self.record_sync
+        torch.cuda.set_sync_debug_mode("warn")
+
+    def close_sync_window(self) -> None:
+        if self._catcher is not None:
+            torch.cuda.set_sync_debug_mode("default")  # reports itself as synchronising: record_sync skips it
+            self._catcher.__exit__(None, None, None)  # the warning filters and showwarning as they were
+            self._catcher = None
+
+    def close_profile(self, steps: int) -> None:
+        """Stop the profiler; with `steps` > 0 keep its summary per step."""
+        self._profiler.__exit__(None, None, None)
+        if steps:
+            self.profile = summarise_profile(self._profiler, steps)
+        self._profiler = None
+
+    def record_sync(self, message, category, filename, lineno, file=None, line=None) -> None:
         """warnings.showwarning in the sync window: a synchronising call is counted by where it was made (the
         innermost frame of this repository, then of torch or Lightning); any other warning is shown as usual."""
         if "synchroniz" not in str(message):
             return self._show_warning(message, category, filename, lineno, file, line)
         frames = traceback.extract_stack()[:-1]
-        ours = [f for f in frames if f.filename.startswith(str(ROOT)) and "/bench/" not in f.filename]
+        ours = [f for f in frames if f.filename.startswith(str(ROOT)) and "/bench/" not in f.filename
+                and "site-packages" not in f.filename]
         library = [f for f in frames if "/torch/" in f.filename or "/lightning/" in f.filename]
+        if library and library[-1].name == "set_sync_debug_mode":  # the window's own closing
+            return None
         site = " via ".join(f"{Path(f.filename).name}:{f.lineno} ({f.name})" for f in ours[-1:] + library[-1:])
         self.sync_sites[site or f"{filename}:{lineno}"] += 1
 
@@ -256,7 +280,8 @@ def load_batches(shards: Path, batch_size: int, length: int, k_max: int, count: 
 
 
 def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: int, device: torch.device) -> dict:
-    """Time the bare training step (module docstring) → ms, steps/s, warm-up seconds, peak memory."""
+    """Time the bare training step (module docstring) → ms, steps/s, warm-up seconds, peak memory, the process's
+    CPU ms a step (cpu_ms) and, on a GPU, the device's busy ms a step over PROFILED_STEPS more steps (busy_ms)."""
     reset(device)
     torch.manual_seed(0)
     module = PretrainModule(**{**settings["model"], "compile": compile_mode}).to(device)
@@ -298,7 +323,8 @@ def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: in
     busy_ms = math.nan
     if device.type == "cuda":  # the device's own time a step: near ms/step, the GPU is what limits
         try:
-            with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as profiler:
+            cuda = [torch.profiler.ProfilerActivity.CUDA]
+            with torch.profiler.profile(activities=cuda, acc_events=True) as profiler:
                 for index in range(WARM_UP + steps, WARM_UP + steps + PROFILED_STEPS):
                     step(index)
                 synchronize(device)
@@ -357,9 +383,12 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
             "--trainer.log_every_n_steps", str(log_every),
             "--trainer.strategy", "auto", "--trainer.limit_val_batches", "0", "--trainer.enable_progress_bar",
             "false", "--trainer.enable_model_summary", "false", "--trainer.default_root_dir", str(root),
-            "--trainer.callbacks+=bench_gpu.StepTimer"] + (["--trainer.callbacks+=bench_gpu.StepDiagnosis"] if diagnose else [])
+            "--trainer.callbacks+=bench_gpu.StepTimer"]
+    if diagnose:
+        args.append("--trainer.callbacks+=bench_gpu.StepDiagnosis")
     cli = lightning_cli(args)
-    by_name = {type(callback).__name__: callback for callback in cli.trainer.callbacks}  # bench_gpu's own copies
+    # the callbacks are instances of the module `bench_gpu` that LightningCLI imported, not of this `__main__`
+    by_name = {type(callback).__name__: callback for callback in cli.trainer.callbacks}
     timer = by_name["StepTimer"]
     per_epoch = cli.trainer.num_training_batches
     warm = fit_warm_up(per_epoch, max_steps)
@@ -372,10 +401,13 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
 
 
 def print_diagnosis(diagnosis: StepDiagnosis, reference: dict | None, device: torch.device) -> None:
-    """StepDiagnosis's findings, with the bare compiled step's ms for scale."""
+    """StepDiagnosis's findings, with the bare step's ms for scale (the compiled step on a GPU, eager on a CPU)."""
     print(f"\nwhere a fit step's time goes (long epochs; steps {FIT_WARM_UP}–{FIT_WARM_UP + diagnosis.SYNC_STEPS - 1}"
           f" timed by the host, then {diagnosis.PROFILE_STEPS} profiled; bare step "
           + (f"{reference['ms']:.1f} ms)" if reference else "not timed)"))
+    if not (diagnosis.inside and diagnosis.between):
+        print(f"  not measured: the fit ended before step {FIT_WARM_UP + 2}")
+        return
     print(f"  host, inside the step (training_step + hooks): median {1000 * statistics.median(diagnosis.inside):.2f} ms;"
           f" between steps (loop, next batch, copy): median {1000 * statistics.median(diagnosis.between):.2f} ms")
     if device.type == "cuda":
@@ -386,7 +418,7 @@ def print_diagnosis(diagnosis: StepDiagnosis, reference: dict | None, device: to
             print(f"    {count:>4}  {site}")
     profile = diagnosis.profile
     if profile is None:
-        print("  profile: not taken (the fit ended before its window)")
+        print("  profile: not taken (the fit ended before its window was over)")
         return
     if device.type == "cuda":
         waits = ", ".join(f"{name} {ms:.2f}" for name, ms in profile["waits"].items()) or "none"

@@ -8,7 +8,8 @@ DataLoader with 2 workers, first over one long epoch, then over `--epochs` epoch
 batches (a small dataset, or many GPUs: issue 12 had 7 steps an epoch) with `make_dataloader`'s persistent
 workers and with a DataLoader that starts its workers every epoch (the loader before issue 12). Reports
 wall-clock rates and rates per CPU second (CPU time of the process and its workers, counted once the
-workers have exited), which stay meaningful on a machine shared with other jobs.
+workers have exited), which stay meaningful on a machine shared with other jobs. Also what receiving one
+batch from a worker costs the training process's main thread (on a GPU, the thread that pins the batches).
 
     python bench/bench_loader.py [--shards DIR | --encoding jpeg|raw] [--seq-len 16] [--batch-size 32]
                                  [--batches 150] [--epochs 40] [--epoch-batches 4]
@@ -20,6 +21,7 @@ import argparse
 import functools
 import gc
 import resource
+import statistics
 import sys
 import tempfile
 import time
@@ -65,6 +67,19 @@ def restarting_workers(dataset: SequenceDataset) -> DataLoader:
                       worker_init_fn=functools.partial(_init_worker, "normal"))
 
 
+def receive_cost(dataset: SequenceDataset, batches: int) -> float:
+    """The training process's own CPU time (its main thread) to take one batch from a worker → median ms over
+    `batches`: each `next()` comes after a pause long enough for a worker to have the batch ready, so the time is
+    the hand-over (unpickling, one file descriptor per shared-memory region), not the waiting."""
+    loader, times = iter(make_dataloader(dataset)), []
+    for _ in range(batches):
+        time.sleep(0.1)
+        started = time.thread_time()
+        next(loader)
+        times.append(time.thread_time() - started)
+    return 1000 * statistics.median(times)
+
+
 def report(label: str, seconds: float, cpu: float, sequences: int, seq_len: int) -> None:
     print(f"{label}: {sequences / seconds:.0f} sequences/s wall, {sequences / cpu:.0f} sequences "
           f"({sequences * seq_len / cpu:.0f} frames) per CPU second")
@@ -101,6 +116,8 @@ def main() -> None:
                                   batches_per_worker=args.batches // max(1, workers), **settings)
         timing = time_epochs(dataset, (lambda d: d) if workers == 0 else make_dataloader)
         report("main process" if workers == 0 else f"DataLoader, {workers} workers", *timing, args.seq_len)
+    dataset = SequenceDataset(shard_set(shards, "train"), num_workers=2, batches_per_worker=21, **settings)
+    print(f"receiving a batch from a worker: {receive_cost(dataset, 40):.2f} ms of the main thread's CPU (median of 40)")
     for label, make_batches in (("workers started once", make_dataloader),
                                 ("workers restarted every epoch", restarting_workers)):
         dataset = SequenceDataset(shard_set(shards, "train"), num_workers=2,

@@ -148,8 +148,9 @@ def collate(sequences: list[dict]) -> dict:
     batch, length = indices.shape
     # the four integer fields are contiguous views of one block: a batch crosses from a DataLoader worker to the
     # training process as two shared-memory regions instead of five (each region costs the receiver a round trip)
-    block = torch.from_numpy(np.concatenate([gaps_of(indices).ravel(), indices.ravel(),
-                                             [s["num_frames"] for s in sequences], [s["label"] for s in sequences]]))
+    fields = [gaps_of(indices).ravel(), indices.ravel(), [s["num_frames"] for s in sequences],
+              [s["label"] for s in sequences]]
+    block = torch.from_numpy(np.concatenate(fields, dtype=np.int64))
     gaps, ids, num_frames, label = block.split([batch * length, batch * length, batch, batch])
     return {
         "frames": frames,  # uint8 [B, L, 3, H, W]

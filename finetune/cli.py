@@ -35,11 +35,12 @@ CONFIG_DIRS = {"online": "configs/finetune", "offline": "configs/offline", "imit
 
 
 def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
+    """The arguments of `hauwm finetune` (online RL) or of its `offline` / `imitate` subcommand."""
     prog = "hauwm finetune" + (f" {subcommand}" if subcommand else "")
+    unit, _ = step_unit(SUBCOMMANDS[subcommand][0] if subcommand else "online")
     description = __doc__
     if subcommand is not None:  # its line of the module's overview: what it does, its example, where to read on
         example = "\n".join(line for line in __doc__.splitlines() if f"hauwm finetune {subcommand} " in line)
-        unit, _ = step_unit(SUBCOMMANDS[subcommand][0])
         description = (f"{SUBCOMMANDS[subcommand][3]} (docs/downstream.md)\n\n{example}\n\n--steps counts {unit}s; "
                        "running again with the same --logdir resumes from its checkpoint.")
     p = argparse.ArgumentParser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -50,7 +51,6 @@ def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
         _, flag, setting, _ = SUBCOMMANDS[subcommand]
         p.add_argument(flag, dest=setting, metavar="ID", help="dataset id for finetune.datasets (a dataset written by "
                                                                f"`hauwm datasets collect`); overrides the config's {setting}")
-    unit, _ = step_unit(SUBCOMMANDS[subcommand][0] if subcommand else "online")
     p.add_argument("--steps", type=int, help=f"{unit} budget (overrides the config)")
     p.add_argument("--logdir", help="run directory: logs, checkpoint, replay (overrides the config)")
     p.add_argument("--seed", type=int)

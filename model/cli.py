@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import pydoc
 import sys
 import warnings
 from pathlib import Path
@@ -73,6 +74,14 @@ def not_an_advert(record: logging.LogRecord) -> bool:
 def checkpoint_dir(root_dir: str | None) -> Path:
     """Where a fit in `trainer.default_root_dir` keeps its checkpoints (last.ckpt among them)."""
     return Path(root_dir or ".") / "checkpoints"
+
+
+def names_a_model_checkpoint(callback: object) -> bool:
+    """Whether a config's callback entry (a class_path and its init_args) is a ModelCheckpoint or a subclass of it."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    named = pydoc.locate(str(getattr(callback, "class_path", "")))
+    return isinstance(named, type) and issubclass(named, ModelCheckpoint)
 
 
 def lightning_cli(args: list[str]):
@@ -155,8 +164,7 @@ def lightning_cli(args: list[str]):
             if no_cuda and str(trainer.devices) == "-1":  # Lightning's "every GPU"; its CPU accelerator raises a TypeError
                 raise ConfigError("trainer.devices -1 means every GPU, and this run is on the CPU: pass --trainer.devices "
                                   "1 (or N processes)")
-            checkpointers = [callback for callback in trainer.callbacks or []
-                             if str(getattr(callback, "class_path", "")).endswith(".ModelCheckpoint")]
+            checkpointers = [callback for callback in trainer.callbacks or [] if names_a_model_checkpoint(callback)]
             if trainer.enable_checkpointing is False and checkpointers:  # Lightning would refuse the pair
                 print("hauwm pretrain: --trainer.enable_checkpointing false: the config's ModelCheckpoint is left "
                       "out, so this run writes no checkpoint and cannot be resumed", file=sys.stderr)

@@ -50,7 +50,7 @@ def test_bench_gpu_runs_on_the_cpu(built_shards):
     for row in ("eager ", "compiled (default)", "loader alone", "(a) long epochs", "(b) short epochs",
                 "where a fit step's time goes", "host, inside the step", "host operators by own time"):
         assert row in shown, shown
-    assert "aim ≥ 0.9×" in shown
+    assert "aim ≥ 0.9×" in shown and "failed (" not in shown
 
 
 @pytest.mark.slow
@@ -68,7 +68,8 @@ def test_bench_loader_runs_every_section(built_shards):
     done = run_script(REPO / "bench" / "bench_loader.py", "--shards", str(built_shards), "--batches", "4",
                       "--epochs", "2", "--epoch-batches", "2", "--batch-size", "4", "--seq-len", "8", timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
-    for row in ("main process:", "DataLoader, 2 workers:", "workers started once:", "workers restarted every epoch:"):
+    for row in ("main process:", "DataLoader, 2 workers:", "receiving a batch from a worker:", "workers started once:",
+                "workers restarted every epoch:"):
         assert row in done.stdout, done.stdout
 
 
