@@ -1,9 +1,10 @@
-"""`ResumeNotice`: what `hauwm pretrain fit` says when it is stopped with Ctrl-C.
+"""`ResumeNotice`: what `hauwm pretrain fit` says when it is stopped with Ctrl-C or by an error.
 
 Lightning ends a fit on Ctrl-C with `sys.exit(1)`, without saving a checkpoint of its own, and says only "Detected
 KeyboardInterrupt, attempting graceful shutdown". This callback closes the progress bar (if there is one) and
 prints, on rank 0, the step reached and the checkpoint the fit can resume from; `interrupted` tells the CLI to
-raise FitInterrupted instead, which exits with 130, as the other stages do on Ctrl-C.
+raise FitInterrupted instead, which exits with 130, as the other stages do on Ctrl-C. A fit stopped by an error
+(a dead loader worker, a full disk) gets the same line before the error's own: which step, which checkpoint.
 """
 
 from __future__ import annotations
@@ -36,9 +37,7 @@ class ResumeNotice(Callback):
 
     def on_exception(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule,
                      exception: BaseException) -> None:
-        if not isinstance(exception, KeyboardInterrupt):
-            return
-        self.interrupted = True
+        self.interrupted = isinstance(exception, KeyboardInterrupt)
         if not trainer.is_global_zero:
             return
         bar = trainer.progress_bar_callback
@@ -50,4 +49,5 @@ class ResumeNotice(Callback):
         if last.is_file():
             written = time.strftime("%H:%M:%S", time.localtime(last.stat().st_mtime))
             where = f"resume with --ckpt_path {last} (step {saved_step(last)}, written {written})"
-        print(f"hauwm pretrain fit: interrupted at step {trainer.global_step}; {where}", file=sys.stderr)
+        how = "interrupted" if self.interrupted else "stopped by the error below"
+        print(f"hauwm pretrain fit: {how} at step {trainer.global_step}; {where}", file=sys.stderr)

@@ -8,6 +8,7 @@ import lightning
 import pytest
 import torch
 
+from data_pipeline.loader import LoaderError
 from model.interrupt import ResumeNotice
 from model.progress import StepProgressBar
 
@@ -21,6 +22,14 @@ class CtrlC(lightning.Callback):
     def on_train_batch_start(self, trainer: lightning.Trainer, *_) -> None:
         if trainer.global_step == 3:
             raise KeyboardInterrupt
+
+
+class DeadWorker(lightning.Callback):
+    """A loader failure before optimizer step 3 (as the Trainer's callback `test_interrupt.DeadWorker`)."""
+
+    def on_train_batch_start(self, trainer: lightning.Trainer, *_) -> None:
+        if trainer.global_step == 3:
+            raise LoaderError("DataLoader worker 0 (train split, pid 1) died while reading shard x.tar: killed")
 
 
 @pytest.mark.parametrize("bar", [True, False], ids=["bar", "no-bar"])
@@ -43,3 +52,10 @@ def test_ctrl_c_names_the_checkpoint_to_resume_from(tmp_path, capsys, bar):
 def test_the_cli_exits_130_and_says_so_before_any_checkpoint(built_shards, tmp_path, capsys):
     assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.callbacks+=test_interrupt.CtrlC") == 130
     assert capsys.readouterr().err.rstrip().endswith("interrupted at step 3; no checkpoint was written yet")
+
+
+def test_a_fit_stopped_by_an_error_says_its_step_before_the_error(built_shards, tmp_path, capsys):
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.callbacks+=test_interrupt.DeadWorker") == 2
+    lines = capsys.readouterr().err.rstrip().splitlines()
+    assert lines[-2].endswith("hauwm pretrain fit: stopped by the error below at step 3; no checkpoint was written yet")
+    assert lines[-1].startswith("hauwm pretrain fit: error: DataLoader worker 0 (train split, pid 1) died")
