@@ -151,11 +151,11 @@ def collate(sequences: list[dict]) -> dict:
     fields = [gaps_of(indices).ravel(), indices.ravel(), [s["num_frames"] for s in sequences],
               [s["label"] for s in sequences]]
     block = torch.from_numpy(np.concatenate(fields, dtype=np.int64))
-    gaps, ids, num_frames, label = block.split([batch * length, batch * length, batch, batch])
+    gaps, frame_indices, num_frames, label = block.split([batch * length, batch * length, batch, batch])
     return {
         "frames": frames,  # uint8 [B, L, 3, H, W]
         "gaps": gaps.view(batch, length),  # int64 [B, L], gaps[:, 0] == 0
-        "indices": ids.view(batch, length),  # int64 [B, L]
+        "indices": frame_indices.view(batch, length),  # int64 [B, L]
         "num_frames": num_frames,  # int64 [B]
         "label": label,  # int64 [B]
         "id": [s["id"] for s in sequences],
