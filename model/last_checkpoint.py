@@ -20,9 +20,10 @@ class LastStepCheckpoint(Callback):
         if trainer.max_steps < 0 or trainer.global_step < trainer.max_steps:
             return
         for callback in trainer.checkpoint_callbacks:
+            if not (isinstance(callback, ModelCheckpoint) and callback.save_last):
+                continue
             # ModelCheckpoint runs after this callback (Lightning puts it last) and writes last.ckpt itself at its
             # own every_n_train_steps; its protected methods are the ones it uses there
-            every = callback._every_n_train_steps if isinstance(callback, ModelCheckpoint) else 0
-            if isinstance(callback, ModelCheckpoint) and callback.save_last and not (
-                    every > 0 and trainer.global_step % every == 0):
+            every = callback._every_n_train_steps
+            if not (every > 0 and trainer.global_step % every == 0):
                 callback._save_last_checkpoint(trainer, callback._monitor_candidates(trainer))
