@@ -21,7 +21,9 @@ interleave) and no validation. Steps/s over the steps after the warm-up (whole e
       epoch every 8 steps, served by the same persistent workers; before them, the workers started again);
 with the skipped steps by cause (GradScaler's overflows, non-finite steps); on a GPU (a) again with the config's
 own workers (ssv2.yaml: 8). Before the fits, the fit's train loader alone (no model) on the same shards and
-workers: the batches/s it gives is the most steps/s the fit could reach with them. On the CPU also the issue's CPU
+workers: the batches/s it gives is the most steps/s the fit could reach with them. Then the bare step fed by
+that loader (long epochs; on a GPU with pinned memory and without): near the bare step, Lightning's machinery is
+what the fit adds; near the fit, the loader's hand-over in the training process is. On the CPU also the issue's CPU
 target: the fit with 2 workers against the bare step loop on the same batches (aim ≥ 0.9×), and with 0 workers.
 A shared CPU host drifts by more than that margin within minutes, so on the CPU every fit is bracketed: the
 bare eager loop is timed again right after it, each fit is compared with the mean of the bare runs just before
@@ -36,6 +38,7 @@ from __future__ import annotations
 import argparse
 import atexit
 import gc
+import itertools
 import json
 import logging
 import math
@@ -49,11 +52,13 @@ import time
 import traceback
 import warnings
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 
 import lightning as L
 import torch
 import yaml
+from torch.utils.data import DataLoader
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -71,6 +76,7 @@ SAMPLE_CLIPS = 344  # 258 train clips (the sample data keeps 1/8 each for valida
 LONG_EPOCH_COPIES = 63  # 63 × 258 train clips: 126 batches of 32 per worker, 504 steps an epoch with 4 workers
 WARM_UP = 3  # bare steps before the timing: compiling and CUDA-graph recording happen here
 FIT_WARM_UP = 20  # fit steps before the timing (rounded up to whole epochs for short epochs)
+FED_STEPS = 500  # at most, timed steps of the bare step fed by the loader (each run compiles the step anew)
 PROFILED_STEPS = 10  # bare steps profiled after the timed ones (a GPU): the device's busy time a step
 
 
@@ -279,9 +285,11 @@ def load_batches(shards: Path, batch_size: int, length: int, k_max: int, count: 
     return batches
 
 
-def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: int, device: torch.device) -> dict:
-    """Time the bare training step (module docstring) → ms, steps/s, warm-up seconds, peak memory, the process's
-    CPU ms a step (cpu_ms) and, on a GPU, the device's busy ms a step over PROFILED_STEPS more steps (busy_ms)."""
+def bare_steps(settings: dict, batches: Iterator[dict], compile_mode: str, steps: int, device: torch.device,
+               warm_up: int = WARM_UP) -> dict:
+    """Time the bare training step (module docstring) on `batches` (on `device`) → ms, steps/s, warm-up seconds,
+    peak memory, the process's CPU ms a step (cpu_ms) and, on a GPU, the device's busy ms a step over
+    PROFILED_STEPS more steps (busy_ms)."""
     reset(device)
     torch.manual_seed(0)
     module = PretrainModule(**{**settings["model"], "compile": compile_mode}).to(device)
@@ -292,7 +300,7 @@ def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: in
     dtype = {"16-mixed": torch.float16, "bf16-mixed": torch.bfloat16}.get(precision)
 
     def step(index: int) -> None:
-        batch = batches[index % len(batches)]
+        batch = next(batches)
         noise = module.noise(batch["gaps"], index, stream=0)
         if compile_mode != "off":
             torch.compiler.cudagraph_mark_step_begin()
@@ -310,12 +318,12 @@ def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: in
         module.dual_step(dual_opt, terms["k_disagreement"], skip)
 
     started = time.perf_counter()
-    for index in range(WARM_UP):
+    for index in range(warm_up):
         step(index)
     synchronize(device)
-    warm_up = time.perf_counter() - started
+    warm_up_s = time.perf_counter() - started
     started, cpu_started = time.perf_counter(), time.process_time()
-    for index in range(WARM_UP, WARM_UP + steps):
+    for index in range(warm_up, warm_up + steps):
         step(index)
     synchronize(device)
     seconds = (time.perf_counter() - started) / steps
@@ -325,37 +333,44 @@ def bare_steps(settings: dict, batches: list[dict], compile_mode: str, steps: in
         try:
             cuda = [torch.profiler.ProfilerActivity.CUDA]
             with torch.profiler.profile(activities=cuda, acc_events=True) as profiler:
-                for index in range(WARM_UP + steps, WARM_UP + steps + PROFILED_STEPS):
+                for index in range(warm_up + steps, warm_up + steps + PROFILED_STEPS):
                     step(index)
                 synchronize(device)
             busy_ms = summarise_profile(profiler, PROFILED_STEPS)["device_busy_ms"]
         except Exception as error:  # noqa: BLE001 — a diagnostic: the timing above stands without it
             print(f"(profiling the bare step failed: {type(error).__name__}: {error})")
-    return {"ms": 1000 * seconds, "steps_per_s": 1 / seconds, "warm_up_s": warm_up,
+    return {"ms": 1000 * seconds, "steps_per_s": 1 / seconds, "warm_up_s": warm_up_s,
             "peak_gib": peak_memory_gib(device), "cpu_ms": cpu_ms, "busy_ms": busy_ms}
 
 
-def loader_alone(shards: Path, data: dict, workers: int, worker_priority: str, total: int,
-                 device: torch.device) -> dict:
-    """The fit's own train loader with no model (ShardDataModule's: persistent workers, pinned memory on a GPU),
-    each batch copied to `device`, epochs advanced as SetEpoch does, over the `total` batches a fit of `total`
-    steps reads → batches/s after the same warm-up as the fit's: the most steps/s the fit could reach with these
-    workers."""
+def fit_loader(shards: Path, data: dict, workers: int, worker_priority: str,
+               pinned: bool = True) -> tuple[ShardDataModule, DataLoader]:
+    """The fit's own train loader (ShardDataModule's: persistent workers, pinned memory on a GPU unless not
+    `pinned`) with its DataModule."""
     datamodule = ShardDataModule(**{**data, "shards": str(shards), "num_workers": workers,
                                     "worker_priority": worker_priority})
     datamodule.setup("fit")
     loader = datamodule.train_dataloader()
-    times, epoch = [], 0
-    while len(times) < total:
+    loader.pin_memory = loader.pin_memory and pinned
+    return datamodule, loader
+
+
+def device_batches(datamodule: ShardDataModule, loader: DataLoader, device: torch.device) -> Iterator[dict]:
+    """`loader`'s batches epoch after epoch (advanced as SetEpoch does), each tensor copied to `device` as
+    Lightning copies it (non-blocking)."""
+    for epoch in itertools.count():
         datamodule.train_set.set_epoch(epoch)
         for batch in loader:
-            for value in batch.values():
-                if torch.is_tensor(value):
-                    value.to(device, non_blocking=True)
-            times.append(time.perf_counter())
-            if len(times) == total:
-                break
-        epoch += 1
+            yield {key: value.to(device, non_blocking=True) for key, value in batch.items() if torch.is_tensor(value)}
+
+
+def loader_alone(shards: Path, data: dict, workers: int, worker_priority: str, total: int,
+                 device: torch.device) -> dict:
+    """The fit's train loader with no model, each batch copied to `device`, over the `total` batches a fit of
+    `total` steps reads → batches/s after the same warm-up as the fit's: the most steps/s the fit could reach with
+    these workers."""
+    datamodule, loader = fit_loader(shards, data, workers, worker_priority)
+    times = [time.perf_counter() for _, _ in zip(range(total), device_batches(datamodule, loader, device))]
     synchronize(device)
     warm = fit_warm_up(len(loader), total)
     return {"batches_per_s": (total - warm) / (time.perf_counter() - times[warm - 1]), "per_epoch": len(loader)}
@@ -492,7 +507,7 @@ def main() -> None:
     for length in lengths:
         batches = load_batches(shards, batch_size, length, k_max, 4, device)
         for mode in ("off", compile_mode):
-            result = bare[length, mode] = bare_steps(settings, batches, mode, steps, device)
+            result = bare[length, mode] = bare_steps(settings, itertools.cycle(batches), mode, steps, device)
             label = "eager" if mode == "off" else f"compiled ({mode})"
             print(f"{label:<24} {length:>3} {result['ms']:8.1f} {result['steps_per_s']:8.1f} "
                   f"{result['warm_up_s']:10.1f} {result['peak_gib']:9.2f} {result['cpu_ms']:8.1f} "
@@ -522,12 +537,23 @@ def main() -> None:
         ratio = f" {result['batches_per_s'] / reference['steps_per_s']:8.2f}×" if reference is not None else ""
         print(f"{label:<18} {fit_workers:>7} {result['per_epoch']:>13} {result['batches_per_s']:10.1f}{ratio}",
               flush=True)
+    if reference is not None:
+        print(f"\n{'bare step fed by the loader':<28} {'workers':>7} {'pinned':>6} {'steps/s':>8} {'host ms':>8} "
+              f"{'× bare':>8}  (the bare {'compiled' if gpu else 'eager'} step, its batches from the fit's train "
+              "loader on long epochs: what the loader costs the step without Lightning)")
+        for pinned in (True, False) if gpu else (False,):  # pinning needs a GPU
+            feed = device_batches(*fit_loader(long_epochs, {**loaded["data"], "seq_len": fit_length}, workers,
+                                              worker_priority, pinned), device)
+            result = bare_steps(settings, feed, reference_mode, min(fit_steps, FED_STEPS), device, warm_up=FIT_WARM_UP)
+            print(f"{'(a) long epochs':<28} {workers:>7} {'yes' if pinned else 'no':>6} {result['steps_per_s']:8.1f} "
+                  f"{result['cpu_ms']:8.1f} {result['steps_per_s'] / reference['steps_per_s']:7.2f}×", flush=True)
+            feed.close()  # its workers end here, not at some later collection
     print(f"\n{'real fit':<18} {'workers':>7} {'steps/epoch':>11} {'timed steps':>11} {'steps/s':>8} "
           f"{'1st step s':>10} {'scaler skips':>12} {'non-finite':>10} {'peak GiB':>9} {'host ms':>8}"
           f" {'× bare':>9}" + ("" if gpu else f" {'bare ms':>8}  (the bare loop re-timed after each fit)"))
     if reference is not None and not gpu:  # timed again just before the first fit, as after every fit
         fit_batches = load_batches(shards, batch_size, fit_length, k_max, 4, device)
-        reference = bare_steps(settings, fit_batches, "off", steps, device)
+        reference = bare_steps(settings, itertools.cycle(fit_batches), "off", steps, device)
     ratios: dict[tuple[str, int], list[float]] = {}  # (run, workers) → each round's fit / bare steps/s
     for round_index in range(rounds):
         for index, (label, directory, fit_workers, max_steps) in enumerate(runs):
@@ -535,7 +561,8 @@ def main() -> None:
                               log_every, work / f"fit-{round_index}-{index}", device)
             ratio_text = ""
             if reference is not None:
-                after = reference if gpu else bare_steps(settings, fit_batches, "off", steps, device)  # bracket on a CPU
+                after = reference if gpu else bare_steps(settings, itertools.cycle(fit_batches), "off", steps,
+                                                         device)  # bracket on a CPU
                 ratio = result["steps_per_s"] / ((reference["steps_per_s"] + after["steps_per_s"]) / 2)
                 ratios.setdefault((label, fit_workers), []).append(ratio)
                 ratio_text = f" {ratio:8.2f}×" + ("" if gpu else f" {after['ms']:8.1f}")
