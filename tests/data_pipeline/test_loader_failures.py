@@ -75,9 +75,13 @@ def test_frames_that_do_not_decode_name_the_clip_and_its_shard(built_shards, tmp
 def test_a_worker_that_stalls_is_reported_after_the_timeout(built_shards):
     slow = shard_set(built_shards, "train", shard_url=f"pipe:sleep 4; cat {built_shards}/{{name}}")
     dataset = SequenceDataset(slow, batch_size=2, seq_len=8, num_workers=2)
+    batches = iter(make_dataloader(dataset, timeout=1))
+    deadline = time.monotonic() + 60  # on a busy machine a worker may take over a second to start
+    while dataset.reading(0) == "(none yet)" and time.monotonic() < deadline:
+        time.sleep(0.05)
     with pytest.raises(LoaderError, match=r"no batch came from the DataLoader workers for 1 s \(worker 0 reading "
                                           r"shard pipe:sleep 4; .*--data.timeout.*--ckpt_path"):
-        next(iter(make_dataloader(dataset, timeout=1)))
+        next(batches)
 
 
 def test_a_worker_killed_between_epochs_is_named_when_the_next_epoch_starts(built_shards):
