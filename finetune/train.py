@@ -21,7 +21,7 @@ import hashlib
 import os
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -157,12 +157,12 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str, device: torch.
         state = torch.load(path, map_location=device, weights_only=True, mmap=True)  # best.pt at start: counters only
     except Exception as err:
         raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): {remedy}") from None
-    before = settings_before_they_existed(cfg.paradigm)
-    for key in ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm", *before):
-        written = state["config"].get(key, before.get(key))  # .get: a checkpoint older than the setting
-        if written != getattr(cfg, key):
-            raise FinetuneError(f"{path} was written by a run with {key}={written!r}, this run has "
-                                f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
+    shaping = ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm",
+               *settings_before_they_existed(cfg.paradigm))
+    if differing := differing_settings(cfg, state["config"], shaping):
+        key, written = differing[0]
+        raise FinetuneError(f"{path} was written by a run with {key}={written!r}, this run has "
+                            f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
     if state["export_sha256"] != fingerprint:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the export it was trained on (or, to train anew, another --logdir)")
@@ -175,12 +175,21 @@ RESUMABLE = ("steps", "logdir", "eval_every", "eval_episodes", "log_every", "che
              "compile", "conv_bf16", "num_envs", "pin_envs")
 
 
+def differing_settings(cfg: FinetuneConfig, written: dict[str, object],
+                       keys: Iterable[str]) -> list[tuple[str, object]]:
+    """(key, value written) for each of `keys` whose value in `written` (a checkpoint's settings) is not cfg's; a
+    setting the checkpoint predates counts with the value runs had before it (settings_before_they_existed), or
+    None."""
+    values = {**settings_before_they_existed(cfg.paradigm), **written}
+    return [(key, values.get(key)) for key in keys if hasattr(cfg, key) and values.get(key) != getattr(cfg, key)]
+
+
 def refuse_changed_settings(cfg: FinetuneConfig, written: dict[str, object], path: Path) -> None:
     """A FinetuneError if `cfg` resumes the checkpoint at `path` (trained with the settings `written`) with a setting
     outside RESUMABLE changed: part of the run would have learned with one value and part with another, and
-    config.yaml keeps only the last. A setting the checkpoint predates is not compared."""
-    changed = [f"{key}={value!r} (asked: {getattr(cfg, key)!r})" for key, value in written.items()
-               if key not in RESUMABLE and hasattr(cfg, key) and value != getattr(cfg, key)]
+    config.yaml keeps only the last."""
+    changed = [f"{key}={value!r} (asked: {getattr(cfg, key)!r})"
+               for key, value in differing_settings(cfg, written, [key for key in written if key not in RESUMABLE])]
     if changed:
         raise FinetuneError(f"{path} was trained with {', '.join(changed[:3])}: a resume goes on with the settings "
                             f"the run began with (only {', '.join(RESUMABLE)} may change); drop the change, or train "
