@@ -8,9 +8,9 @@ replay, and per-episode reseeding. Every update:
    windows are expert demonstrations and the rest the agent's own episodes, with no reward loss: the
    environment's reward is never learned from (it is still logged: episodes.csv, eval.csv);
 2. the expert pairs (z_t, a_t): the actions the expert took, with the latents z_t = [ŝ_t; s̃_t] that the world
-   model imagines along them from the posterior state of each demonstration window's first frame (the
-   frozen encoder and streams, through the world model's observe), `expert_latents: imagined`; or, as
-   VMAIL, the demonstrations' posterior latents themselves (`expert_latents: posterior`);
+   model imagines along them for H steps from the posterior states of the demonstration windows (the frozen
+   encoder and streams, through the world model's observe), `expert_latents: imagined`; or, as VMAIL, the
+   demonstrations' posterior latents themselves (`expert_latents: posterior`);
 3. the actor-critic learns in imagination from every posterior state of the batch, as online, with the
    discriminator's logit ℓ(z_t, a_t) as the reward (finetune/discriminator.py says why that form);
 4. the discriminator takes one step on those expert pairs against the imagined policy pairs.
@@ -21,8 +21,8 @@ Trained on posterior expert pairs, the discriminator learned that difference, no
 on drawer close it called the expert's own actions, imagined from the expert's states, "policy" from the
 first imagined step on (logit +2.5 on the posterior, −1.1 one step later, −5.3 ten steps later), and gave
 the actor's actions there the same logits within 0.25 (bench/bench_imitation_diagnosis.py). Imagined
-along the demonstrations, both sides of D carry the same imagination drift over the same depths (L − 1 = H
-steps by default), and what tells them apart is the actions and where they lead. A checkpoint from before
+along the demonstrations, from every window position with H actions after it, both sides of D carry the same
+imagination drift over the same depths (0..H−1), and what tells them apart is the actions and where they lead. A checkpoint from before
 this setting resumes only with `expert_latents: posterior`.
 
 Evaluation, logs, checkpoints (which hold the discriminator and its optimiser) and resume are the online
@@ -110,6 +110,7 @@ class ImitationAgent(Agent):
                                            cfg.disc_lr, cfg.disc_gp_scale, cfg.grad_clip)
         self.demos_per_batch = demos_per_batch(cfg)
         self.imagine_expert = cfg.expert_latents == "imagined"
+        self.horizon = cfg.horizon  # the depths of the policy's imagined pairs: 0..H−1
         self.expert: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's expert pairs
         self.policy: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's imagined pairs
 
@@ -129,18 +130,25 @@ class ImitationAgent(Agent):
     def imagined_reward(self, batch: dict[str, torch.Tensor], start: Latent) -> RewardFn:
         demos = slice(batch["action"].shape[0] - self.demos_per_batch, None)
         actions = batch["action"][demos, 1:]  # a_t, the action the expert took at step t [B_d, L−1, A]
-        self.expert = (self.expert_latents(start, demos, actions), actions)
+        self.expert = self.expert_pairs(start, demos, actions)
         return self.discriminator_reward
 
     @torch.no_grad()
-    def expert_latents(self, start: Latent, demos: slice, actions: torch.Tensor) -> torch.Tensor:
-        """z_t for t = 0..L−2 of the demonstration windows [B_d, L−1, F]: imagined along the expert's `actions`
-        from each window's first posterior state, or the posterior states themselves (`expert_latents`)."""
+    def expert_pairs(self, start: Latent, demos: slice, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The expert's pairs (z_t, a_t) from the demonstration windows' posterior states `start` and `actions`.
+
+        imagined: z imagined along the expert's actions from every window position p that has D = min(H, L−1)
+        actions after it, over depths 0..D−1 as the policy's pairs (with D = H): z_p, then D − 1 imagined steps
+        → feats [D, B_d·P, F] and the actions a_p..a_{p+D−1} [D, B_d·P, A], P = L − D positions.
+        posterior (VMAIL's): the posterior states of positions 0..L−2 and their actions, [B_d, L−1, ·].
+        """
         if not self.imagine_expert:
-            return self.world_model.feature(start)[demos, :-1]
-        first = start.map(lambda x: x[demos, :1])
-        feats, _, _ = self.world_model.imagine(first, RecordedActions(actions.transpose(0, 1)), actions.shape[1] - 1)
-        return feats.transpose(0, 1)  # [L−1, B_d, F] → [B_d, L−1, F]
+            return self.world_model.feature(start)[demos, :-1], actions
+        depth = min(self.horizon, actions.shape[1])
+        first = start.map(lambda x: x[demos, :actions.shape[1] - depth + 1])  # [B_d, P, ·]
+        recorded = actions.unfold(1, depth, 1).permute(3, 0, 1, 2).flatten(1, 2)  # [B_d, P, A, D] → [D, B_d·P, A]
+        feats, _, _ = self.world_model.imagine(first, RecordedActions(recorded), depth - 1)
+        return feats, recorded
 
     def discriminator_reward(self, rollout: Rollout) -> torch.Tensor:
         """r_t = ℓ(z_t, a_t) for t = 0..H−1; keeps the (detached) pairs for the discriminator's step."""

@@ -254,7 +254,7 @@ class WorldModel(nn.Module):
                 reward: RewardFn | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Roll out `horizon` steps from every start state ([B, L, ·] flattened to N = B·L).
 
-        Returns feats z_0..z_H [H+1, N, F], rewards [H, N] and the policy's entropies [H, N]. The rewards are
+        Returns feats z_0..z_H [H+1, N, F], rewards [H, N] and the policy's entropies [H, N] (H ≥ 0). The rewards are
         the reward head's R(s̃_1..s̃_H), or `reward(rollout)` when given. Gradients reach the policy through the
         new stream's transitions and the reward, whose own parameters record no gradient here (the world
         model's are trained by the model loss only; a reward function guards its own).
@@ -281,6 +281,9 @@ class WorldModel(nn.Module):
                 stochs.append(new.stoch)
                 means.append(mean)
                 stds.append(std)
+            if horizon == 0:  # the start states alone
+                nothing = feats[0].new_zeros(0, feats[0].shape[0])
+                return torch.stack(feats), nothing, nothing
             if reward is None:
                 rewards = self.predicted_reward(torch.stack(new_feats))  # [H, N]
             else:

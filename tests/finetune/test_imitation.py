@@ -103,7 +103,7 @@ def test_imitation_run_learns_from_no_env_reward_and_a_resumed_run_continues_exa
 @pytest.mark.parametrize("kind", ["imagined", "posterior"])
 def test_expert_pairs_are_imagined_along_the_demonstrations_actions_or_are_their_posteriors(
         export_dir, tiny_config, tmp_path, random_episodes, kind):
-    cfg = imitation_config(tiny_config, tmp_path, 16, expert_latents=kind)
+    cfg = imitation_config(tiny_config, tmp_path, 16, expert_latents=kind)  # L = 8, H = 3
     torch.manual_seed(0)
     agent = build_agent(cfg, 4, export_dir, torch.device("cpu"), ImitationAgent)
     episodes = random_episodes(cfg.batch_size, cfg.seq_len - 1, 4, seed=3)
@@ -111,24 +111,46 @@ def test_expert_pairs_are_imagined_along_the_demonstrations_actions_or_are_their
     with torch.no_grad():
         _, start, _ = agent.world_model.loss({**batch, "reward": torch.zeros(batch["action"].shape[:2])})
     demos = slice(cfg.batch_size - agent.demos_per_batch, None)
-    actions = batch["action"][demos, 1:]
-    posterior = agent.world_model.feature(start)[demos, :-1]  # [B_d, L − 1, F]
+    actions = batch["action"][demos, 1:]  # [B_d, L − 1, A]
+    posterior = agent.world_model.feature(start)[demos]  # [B_d, L, F]
 
     def expert(actions):
         torch.manual_seed(1)  # the same draws in imagination
-        return agent.expert_latents(start, demos, actions)
+        return agent.expert_pairs(start, demos, actions)
 
-    feats = expert(actions)
-    assert feats.shape == posterior.shape
+    feats, paired = expert(actions)
     if kind == "posterior":
-        assert torch.equal(feats, posterior)
+        assert torch.equal(feats, posterior[:, :-1]) and torch.equal(paired, actions)
         return
-    assert torch.equal(feats[:, 0], posterior[:, 0])  # imagination starts at the window's first posterior state
-    assert not torch.allclose(feats[:, 1:], posterior[:, 1:])
-    assert torch.equal(expert(actions), feats)
+    depth, positions = cfg.horizon, cfg.seq_len - cfg.horizon  # depths 0..H−1 from positions 0..L−1−H
+    demo_count = actions.shape[0]
+    assert feats.shape == (depth, demo_count * positions, posterior.shape[-1])
+    assert paired.shape == (depth, demo_count * positions, actions.shape[-1])
+    for demo, position in [(0, 0), (demo_count - 1, positions - 1), (demo_count - 1, 1)]:
+        column = demo * positions + position
+        assert torch.equal(feats[0, column], posterior[demo, position])  # imagination starts at a posterior state
+        assert torch.equal(paired[:, column], actions[demo, position:position + depth])  # a_p..a_{p+H−1}
+    along = posterior.unfold(1, depth, 1)[:, :positions].permute(3, 0, 1, 2).flatten(1, 2)  # z_{p+t}, [H, B_d·P, F]
+    assert torch.equal(along[0], feats[0]) and not torch.allclose(feats[1:], along[1:])  # imagined, not observed
+    assert torch.equal(expert(actions)[0], feats)
     new = slice(-agent.world_model.rssm.feature_dim, None)  # the new stream: the one that reads the actions
-    other = expert(-actions)
-    assert torch.equal(other[:, 0], feats[:, 0]) and not torch.allclose(other[:, 1:, new], feats[:, 1:, new])
+    other, _ = expert(-actions)
+    assert torch.equal(other[0], feats[0]) and not torch.allclose(other[1:, :, new], feats[1:, :, new])
+
+
+def test_expert_pairs_of_windows_shorter_than_the_horizon_cover_what_the_window_holds(
+        export_dir, tiny_config, tmp_path, random_episodes):
+    cfg = imitation_config(tiny_config, tmp_path, 16, seq_len=3, horizon=5)
+    agent = build_agent(cfg, 4, export_dir, torch.device("cpu"), ImitationAgent)
+    episodes = random_episodes(cfg.batch_size, cfg.seq_len - 1, 4, seed=3)
+    batch = {key: torch.as_tensor(np.stack([episode[key] for episode in episodes])) for key in ("obs", "action")}
+    with torch.no_grad():
+        _, start, _ = agent.world_model.loss({**batch, "reward": torch.zeros(batch["action"].shape[:2])})
+    demos = slice(cfg.batch_size - agent.demos_per_batch, None)
+    for length in (2, 1):  # L − 1 = 2 actions: one start, depths 0 and 1; one action: the posterior state alone
+        feats, paired = agent.expert_pairs(start, demos, batch["action"][demos, 1:1 + length])
+        assert feats.shape[:2] == paired.shape[:2] == (length, agent.demos_per_batch)
+    assert torch.equal(feats[0], agent.world_model.feature(start)[demos, 0])
 
 
 def test_a_run_resumes_only_with_the_expert_latents_it_was_trained_with(export_dir, tiny_config, tmp_path, two_demos):
