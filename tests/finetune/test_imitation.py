@@ -12,6 +12,7 @@ from finetune.discriminator import Discriminator
 from finetune.imitation import ImitationAgent, train_imitation
 from finetune.envs import make_env
 from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, FinetuneError, build_agent
+from finetune.world_model import Latent
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
 
@@ -100,18 +101,24 @@ def test_imitation_run_learns_from_no_env_reward_and_a_resumed_run_continues_exa
     assert not all(torch.equal(fresh[key], first["agent"][key]) for key in decoder)  # the rest did learn
 
 
-@pytest.mark.parametrize("kind", ["imagined", "posterior"])
-def test_expert_pairs_are_imagined_along_the_demonstrations_actions_or_are_their_posteriors(
-        export_dir, tiny_config, tmp_path, random_episodes, kind):
-    cfg = imitation_config(tiny_config, tmp_path, 16, expert_latents=kind)  # L = 8, H = 3
-    torch.manual_seed(0)
+def agent_on_a_batch(cfg, export_dir, random_episodes) -> tuple[ImitationAgent, torch.Tensor, Latent, slice]:
+    """An imitation agent, the actions [B, L, A] of a batch of random windows, their posterior states, and the
+    slice of the batch's demonstration windows."""
     agent = build_agent(cfg, 4, export_dir, torch.device("cpu"), ImitationAgent)
     episodes = random_episodes(cfg.batch_size, cfg.seq_len - 1, 4, seed=3)
     batch = {key: torch.as_tensor(np.stack([episode[key] for episode in episodes])) for key in ("obs", "action")}
     with torch.no_grad():
         _, start, _ = agent.world_model.loss({**batch, "reward": torch.zeros(batch["action"].shape[:2])})
-    demos = slice(cfg.batch_size - agent.demos_per_batch, None)
-    actions = batch["action"][demos, 1:]  # [B_d, L − 1, A]
+    return agent, batch["action"], start, slice(cfg.batch_size - agent.demos_per_batch, None)
+
+
+@pytest.mark.parametrize("kind", ["imagined", "posterior"])
+def test_expert_pairs_are_imagined_along_the_demonstrations_actions_or_are_their_posteriors(
+        export_dir, tiny_config, tmp_path, random_episodes, kind):
+    cfg = imitation_config(tiny_config, tmp_path, 16, expert_latents=kind)  # L = 8, H = 3
+    torch.manual_seed(0)
+    agent, all_actions, start, demos = agent_on_a_batch(cfg, export_dir, random_episodes)
+    actions = all_actions[demos, 1:]  # [B_d, L − 1, A]
     posterior = agent.world_model.feature(start)[demos]  # [B_d, L, F]
 
     def expert(actions):
@@ -141,14 +148,9 @@ def test_expert_pairs_are_imagined_along_the_demonstrations_actions_or_are_their
 def test_expert_pairs_of_windows_shorter_than_the_horizon_cover_what_the_window_holds(
         export_dir, tiny_config, tmp_path, random_episodes):
     cfg = imitation_config(tiny_config, tmp_path, 16, seq_len=3, horizon=5)
-    agent = build_agent(cfg, 4, export_dir, torch.device("cpu"), ImitationAgent)
-    episodes = random_episodes(cfg.batch_size, cfg.seq_len - 1, 4, seed=3)
-    batch = {key: torch.as_tensor(np.stack([episode[key] for episode in episodes])) for key in ("obs", "action")}
-    with torch.no_grad():
-        _, start, _ = agent.world_model.loss({**batch, "reward": torch.zeros(batch["action"].shape[:2])})
-    demos = slice(cfg.batch_size - agent.demos_per_batch, None)
+    agent, actions, start, demos = agent_on_a_batch(cfg, export_dir, random_episodes)
     for length in (2, 1):  # L − 1 = 2 actions: one start, depths 0 and 1; one action: the posterior state alone
-        feats, paired = agent.expert_pairs(start, demos, batch["action"][demos, 1:1 + length])
+        feats, paired = agent.expert_pairs(start, demos, actions[demos, 1:1 + length])
         assert feats.shape[:2] == paired.shape[:2] == (length, agent.demos_per_batch)
     assert torch.equal(feats[0], agent.world_model.feature(start)[demos, 0])
 
