@@ -22,8 +22,8 @@ on drawer close it called the expert's own actions, imagined from the expert's s
 first imagined step on (logit +2.5 on the posterior, −1.1 one step later, −5.3 ten steps later), and gave
 the actor's actions there the same logits within 0.25 (bench/bench_imitation_diagnosis.py). Imagined
 along the demonstrations, from every window position with H actions after it, both sides of D carry the same
-imagination drift over the same depths (0..H−1), and what tells them apart is the actions and where they lead. A checkpoint from before
-this setting resumes only with `expert_latents: posterior`.
+imagination drift over the same depths (0..H−1), and what tells them apart is the actions and where they
+lead. A checkpoint from before this setting resumes only with `expert_latents: posterior`.
 
 Evaluation, logs, checkpoints (which hold the discriminator and its optimiser) and resume are the online
 loop's; a run resumed from a checkpoint taken at an episode's end continues exactly.
