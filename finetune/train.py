@@ -128,6 +128,8 @@ def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dic
     state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
              "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state(),
              "export_sha256": fingerprint}
+    if agent.device.type == "cuda":  # the world model's noise and the actor's samples are drawn there
+        state["cuda_rng"] = torch.cuda.get_rng_state(agent.device)
     if rng is not None:
         state["replay_rng"] = rng.bit_generator.state
     tmp = path.with_suffix(".tmp")
@@ -149,12 +151,14 @@ def settings_before_they_existed(paradigm: str) -> dict[str, object]:
     return before
 
 
-def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str, device: torch.device,
+def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str,
                remedy: str = "restore it, or train in another --logdir") -> dict:
     """What save_checkpoint wrote to `path` (checkpoint.pt or best.pt), checked to be of this run: the same export
-    and the settings that shape the agent; a FinetuneError naming the file (and `remedy` if it cannot be read)."""
+    and the settings that shape the agent; a FinetuneError naming the file (and `remedy` if it cannot be read).
+    Read onto the CPU whatever the agent's device: loading the weights and optimizer states copies them to it,
+    and torch.set_rng_state takes a CPU tensor only."""
     try:
-        state = torch.load(path, map_location=device, weights_only=True, mmap=True)  # best.pt at start: counters only
+        state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)  # best.pt at start: counters only
     except Exception as err:
         raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): {remedy}") from None
     shaping = ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm",
@@ -200,7 +204,7 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
                     rng: np.random.Generator | None = None, resuming: bool = False) -> dict[str, float]:
     """Restore `agent` (weights, optimizers), torch's and `rng`'s states from `path`; -> its counters. `resuming`:
     `cfg` goes on training it, so only RESUMABLE settings may differ from those it was trained with."""
-    state = read_state(path, cfg, fingerprint, agent.device)
+    state = read_state(path, cfg, fingerprint)
     if resuming:
         refuse_changed_settings(cfg, state["config"], path)
     missing, unexpected = agent.load_state_dict(state["agent"], strict=False)
@@ -209,6 +213,8 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
         raise FinetuneError(f"{path} does not fit this agent (missing {missing[:3]}, unexpected {unexpected[:3]})")
     agent.load_optimizer_state_dicts(state["optimizers"])
     torch.set_rng_state(state["torch_rng"])
+    if "cuda_rng" in state and agent.device.type == "cuda":
+        torch.cuda.set_rng_state(state["cuda_rng"], agent.device)
     if rng is not None and "replay_rng" in state:
         rng.bit_generator.state = state["replay_rng"]
     return dict(state["counters"])
@@ -390,7 +396,7 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
     best = Path(cfg.logdir) / BEST
     if best.exists():  # a run stopped between keeping an evaluation and its next checkpoint: its best.pt is better
         #                than the checkpoint's counters know, and a worse evaluation must not replace it on resume
-        kept = read_state(best, cfg, fingerprint, torch.device("cpu"), remedy="restore it, or move it away to go on "
+        kept = read_state(best, cfg, fingerprint, remedy="restore it, or move it away to go on "
                           "without it (the run then keeps its next best evaluation)")["counters"]
         if kept.get("best_return", -np.inf) > counters.get("best_return", -np.inf):
             counters.update(best_return=kept["best_return"], best_at=kept["best_at"])
