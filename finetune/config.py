@@ -73,7 +73,7 @@ class FinetuneConfig:
     replay_capacity: int = 1_000_000
     batch_size: int = 32
     seq_len: int = 50
-    train_every: int = 5  # env steps per gradient update (DreamerV2's DMC setting)
+    train_every: int | None = None  # env steps (frames) per update; None = 5 × action_repeat (DreamerV2, APV)
     eval_every: int = 10_000
     eval_episodes: int = 10
     log_every: int = 1_000
@@ -129,6 +129,8 @@ class FinetuneConfig:
                 value = getattr(self, name)
                 if value is not None and not allowed(value):
                     raise ConfigError(f"setting {name} must be {rule}, got {value!r}")
+        if self.train_every is None:  # DreamerV2 and APV update once every 5 agent steps, each action_repeat frames
+            self.train_every = 5 * self.action_repeat
         if self.paradigm == "offline" and self.penalty != "max_std" and self.penalty_scale > 0 and self.model_heads < 2:
             raise ConfigError(f"penalty {self.penalty!r} measures disagreement between the new stream's prior heads: "
                               f"offline RL needs model_heads >= 2 (LOMPO: 7), got {self.model_heads}; or penalty_scale=0")

@@ -22,6 +22,12 @@ def test_every_paper_task_has_a_config_with_the_table3_budget(task):
     assert (cfg.units, cfg.noise_std) == (400, 0.01)
     if task.startswith("dmc"):
         assert cfg.action_repeat == 2
+    assert cfg.train_every == 5 * cfg.action_repeat  # DreamerV2's and APV's update every 5 agent steps
+
+
+def test_train_every_defaults_to_five_agent_steps_and_keeps_a_value_given():
+    assert [load_config(None, {"action_repeat": repeat}).train_every for repeat in (1, 2, 4)] == [5, 10, 20]
+    assert load_config(None, {"action_repeat": 2, "train_every": 5}).train_every == 5
 
 
 def test_demo_config_is_small():
