@@ -190,6 +190,7 @@ class SequenceDataset(IterableDataset):
                 f"split {shards.split!r} has {len(usable)} shards with clips of at least seq_len={seq_len} frames, "
                 f"but {world_size} ranks × {self.workers} workers need at least {streams} (one each): rebuild with a "
                 f"smaller --clips-per-shard" + "".join(f", or use {way}" for way in fewer))
+        self.streams = streams  # what a resume position means depends on it (ResumableDataLoader.load_state_dict)
         clips = sum(n for _, n in usable)
         self.batches_per_worker = batches_per_worker or clips // (streams * batch_size)
         if self.batches_per_worker < 1:
@@ -357,10 +358,16 @@ class ResumableDataLoader(DataLoader):
     worker_priority: str = "normal"  # set by `make_dataloader`, for the stalled-worker message
 
     def state_dict(self) -> dict:
-        return {"epoch": self.dataset.epoch, "batches": int(self.batches_done()), "epoch_ended": bool(self.epoch_ended())}
+        return {"epoch": self.dataset.epoch, "batches": int(self.batches_done()), "epoch_ended": bool(self.epoch_ended()),
+                "streams": self.dataset.streams}
 
     def load_state_dict(self, state: dict) -> None:
         epoch, batches = state["epoch"], state["batches"]
+        if state.get("streams", self.dataset.streams) != self.dataset.streams:
+            warnings.warn(f"the checkpoint's {self.dataset.split} loader ran {state['streams']} streams (ranks × "
+                          f"DataLoader workers), this run {self.dataset.streams}: the rest of epoch {epoch} is not "
+                          "what an unbroken run would have read (clips may repeat or be left out in it), later epochs "
+                          "are; resume with the same --data.num_workers and devices for an exact resume", stacklevel=2)
         # saved after an epoch's last batch (all of them, or the last that limit_train_batches lets through):
         # Lightning goes on with the next epoch, from this iterator and without the epoch-start hooks (so without
         # SetEpoch)

@@ -7,6 +7,7 @@ import multiprocessing
 import os
 import signal
 import tarfile
+import warnings
 from collections import Counter
 
 import lightning
@@ -359,6 +360,21 @@ def test_a_shard_repacked_by_gnu_tar_reads_the_same(built_shards, tmp_path):
     subprocess.run(["tar", "--format=pax", "-cf", str(repacked), *names], cwd=unpacked, check=True)
     with open(shard, "rb") as original, open(repacked, "rb") as copy:
         assert list(read_samples(copy, "repacked")) == list(read_samples(original, "original"))
+
+
+def test_a_resume_with_another_number_of_loader_streams_is_warned_about(built_shards):
+    """The position a checkpoint holds (batches of the epoch read per rank) means other clips with another number
+    of ranks × workers: such a resume warns; the same number, or a checkpoint from before the field, does not."""
+    loader = make_dataloader(SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=2))
+    state = loader.state_dict()
+    assert state["streams"] == 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loader.load_state_dict({**state, "batches": 1})
+        loader.load_state_dict({key: value for key, value in state.items() if key != "streams"})
+    with pytest.warns(UserWarning, match=r"ran 1 streams \(ranks × DataLoader workers\), this run 2: the rest of "
+                                         r"epoch 0 .*--data.num_workers"):
+        loader.load_state_dict({**state, "streams": 1})
 
 
 @pytest.mark.parametrize("stop_at", [5, 6, 9])  # mid-epoch (an epoch here is 6 batches), at its end, inside the second
