@@ -104,6 +104,7 @@ def replay_episodes(rundir: str | Path, limit: int | None = None) -> tuple[dict[
     The replay keeps obs, action and reward only: no success flags, and every episode is taken to end
     at a time limit (none of the paper's tasks has terminal states).
     """
+    from finetune.envs.registry import episode_time_limit
     from finetune.replay import episode_files, read_episode
 
     cfg = run_config(rundir)
@@ -114,6 +115,7 @@ def replay_episodes(rundir: str | Path, limit: int | None = None) -> tuple[dict[
         raise DatasetError(f"{rundir}/replay holds no episodes: {why}; to record the run's agent instead, use "
                            f"--policy agent --checkpoint {rundir}")
     paths = paths[:limit] if limit is not None else paths
-    settings = {"task": cfg.task, "action_repeat": cfg.action_repeat, "time_limit": cfg.time_limit,
+    settings = {"task": cfg.task, "action_repeat": cfg.action_repeat,
+                "time_limit": episode_time_limit(cfg.task, cfg.action_repeat, cfg.time_limit),
                 "fast_render": cfg.fast_render, "seed": cfg.seed, "agent": cfg.agent, "run": str(rundir)}
     return settings, len(paths), (read_episode(path) for path in paths)

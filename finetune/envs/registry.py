@@ -65,6 +65,15 @@ def check_task(name: str) -> tuple[ModuleType, dict]:
     return suite, tasks
 
 
+def episode_time_limit(name: str, action_repeat: int | None = None, time_limit: int | None = None) -> int:
+    """The agent steps of an episode of task `name`: `time_limit`, or the suite's episode length divided by
+    `action_repeat` (the suite's default repeat where None)."""
+    if time_limit is not None:
+        return time_limit
+    suite = _suite(name)
+    return max(1, suite.EPISODE_SIM_STEPS // max(1, action_repeat or suite.DEFAULT_ACTION_REPEAT))
+
+
 def make_env(
     name: str,
     seed: int,
@@ -83,6 +92,5 @@ def make_env(
     suite, tasks = check_task(name)
     if action_repeat is None:
         action_repeat = suite.DEFAULT_ACTION_REPEAT
-    if time_limit is None:
-        time_limit = max(1, suite.EPISODE_SIM_STEPS // max(1, action_repeat))
+    time_limit = episode_time_limit(name, action_repeat, time_limit)
     return suite.ENV_CLASS(name, tasks[name], seed, image_size, action_repeat, time_limit, fast_render)

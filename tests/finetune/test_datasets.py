@@ -294,6 +294,19 @@ def test_bad_collect_flags_are_refused_before_an_env_is_made(capsys):
         assert message in capsys.readouterr().err, flags
 
 
+def test_a_runs_replay_records_the_suites_time_limit_where_the_run_left_it_to_the_suite(tmp_path, tiny_config):
+    rundir = tmp_path / "run"
+    cfg = tiny_config(task=TASK, agent="scratch", action_repeat=1, fast_render=True)  # time_limit: the suite's
+    (rundir / "replay").mkdir(parents=True)
+    (rundir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg)))
+    env = make_env(TASK, seed=0, fast_render=True, time_limit=4)
+    Replay(rundir / "replay", capacity=100, rng=np.random.default_rng(0)).add(
+        play_episode(env, RandomPolicy(env.action_space)))
+    env.close()
+    assert main(["collect", "--from-run", str(rundir), "--dataset-id", "test/suite-limit-v0", "--no-progress"]) == 0
+    assert hauwm_metadata(open_dataset("test/suite-limit-v0"))["time_limit"] == 500  # Meta-World's 500 steps
+
+
 def test_a_run_without_replay_episodes_says_how_to_record_its_agent(tmp_path, capsys):
     (tmp_path / "config.yaml").write_text("task: metaworld_drawer_close\nparadigm: offline\nmodel_heads: 7\n")
     assert main(["collect", "--from-run", str(tmp_path), "--dataset-id", "test/replay-v0"]) == 2
