@@ -23,7 +23,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from .shard_format import ENCODINGS, ERRORS_FILE, FORMAT_VERSION, MANIFEST_FILE, add_clip, open_writer
-from .ssv2 import ClipRecord, annotation_path, load_labels, load_split
+from .ssv2 import AnnotationError, ClipRecord, annotation_path, load_labels, load_split
 from .workers import ClipResult, DecodePool, DecodeSettings
 
 SETTINGS_FILE = "build.json"
@@ -100,9 +100,14 @@ def annotation_files(splits: list[str]) -> list[str]:
 
 def plan_shards(config: BuildConfig) -> list[ShardPlan]:
     labels = load_labels(config.annotations) if set(config.splits) - {"test"} else {}
-    plans = []
+    plans, split_of = [], {}  # clip id -> the split it is planned in
     for split in config.splits:
         records = load_split(config.annotations, split, labels)[: config.max_clips]
+        for record in records:  # one clip in two splits would put validation clips into training
+            if split_of.setdefault(record.id, split) != split:
+                raise AnnotationError(f"clip {record.id!r} is listed in {annotation_path(config.annotations, split)} "
+                                      f"and in {annotation_path(config.annotations, split_of[record.id])}: a clip "
+                                      "belongs to one split; remove it from one of them")
         starts = range(0, len(records), config.clips_per_shard)
         plans += [ShardPlan(split, i, records[start:start + config.clips_per_shard]) for i, start in enumerate(starts)]
     return plans

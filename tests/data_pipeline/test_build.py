@@ -4,6 +4,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -15,9 +16,10 @@ import numpy as np
 import pytest
 
 from data_pipeline import workers
-from data_pipeline.build import BuildConfig, BuildError, build
+from data_pipeline.build import BuildConfig, BuildError, build, plan_shards
 from data_pipeline.sample_data import BROKEN_KINDS
 from data_pipeline.shard_format import decode_frames
+from data_pipeline.ssv2 import AnnotationError, annotation_path
 
 
 def quiet(message):
@@ -228,3 +230,14 @@ def test_repeated_random_sigkills_with_broken_entries_still_end_byte_identical(s
         process.wait()
     subprocess.run(build_cli(*common, "--out", out, "--workers", "2"), check=True, capture_output=True)
     assert directory_bytes(out) == directory_bytes(reference)
+
+
+def test_a_clip_listed_in_two_splits_is_refused_before_anything_is_built(sample_ssv2, clean_annotations, tmp_path):
+    annotations = shutil.copytree(clean_annotations, tmp_path / "annotations")
+    leaked = json.loads(annotation_path(annotations, "train").read_text())[0]
+    validation = annotation_path(annotations, "validation")
+    validation.write_text(json.dumps(json.loads(validation.read_text()) + [leaked]))
+    config = BuildConfig(annotations=annotations, videos=sample_ssv2 / "videos", out=tmp_path / "shards")
+    with pytest.raises(AnnotationError, match=rf"clip '{leaked['id']}' is listed in \S+validation.json and in "
+                                              r"\S+train.json: a clip belongs to one split"):
+        plan_shards(config)
