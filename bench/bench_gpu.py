@@ -532,8 +532,7 @@ def main() -> None:
     for label, directory, fit_workers, max_steps in runs:
         if fit_workers == 0:
             continue
-        result = loader_alone(directory, {**loaded["data"], "seq_len": fit_length}, fit_workers, worker_priority,
-                              max_steps, device)
+        result = loader_alone(directory, loaded["data"], fit_workers, worker_priority, max_steps, device)
         ratio = f" {result['batches_per_s'] / reference['steps_per_s']:8.2f}×" if reference is not None else ""
         print(f"{label:<18} {fit_workers:>7} {result['per_epoch']:>13} {result['batches_per_s']:10.1f}{ratio}",
               flush=True)
@@ -542,8 +541,7 @@ def main() -> None:
               f"{'× bare':>8}  (the bare {'compiled' if gpu else 'eager'} step, its batches from the fit's train "
               "loader on long epochs: what the loader costs the step without Lightning)")
         for pinned in (True, False) if gpu else (False,):  # pinning needs a GPU
-            feed = device_batches(*fit_loader(long_epochs, {**loaded["data"], "seq_len": fit_length}, workers,
-                                              worker_priority, pinned), device)
+            feed = device_batches(*fit_loader(long_epochs, loaded["data"], workers, worker_priority, pinned), device)
             result = bare_steps(settings, feed, reference_mode, min(fit_steps, FED_STEPS), device, warm_up=FIT_WARM_UP)
             print(f"{'(a) long epochs':<28} {workers:>7} {'yes' if pinned else 'no':>6} {result['steps_per_s']:8.1f} "
                   f"{result['cpu_ms']:8.1f} {result['steps_per_s'] / reference['steps_per_s']:7.2f}×", flush=True)
