@@ -27,6 +27,8 @@ from .ssv2 import AnnotationError, ClipRecord, annotation_path, load_labels, loa
 from .workers import ClipResult, DecodePool, DecodeSettings
 
 SETTINGS_FILE = "build.json"
+RETRYABLE = ("missing", "timeout", "crashed")  # failures of the moment: the file may arrive, the machine be less busy
+MAX_MEMBER_NAME = 100  # bytes of a tar member's name in the USTAR format the shards are written in
 MAX_SIZE = 512  # --size: the world model reads 64×64; SSv2's clips are 240 pixels high
 
 
@@ -52,6 +54,7 @@ class BuildConfig:
     num_parts: int = 1
     max_error_rate: float = 0.01
     timeout: float = 30.0
+    retry_failed: bool = False  # rebuild the shards whose clips failed for a reason a later run may not repeat
 
 
 @dataclass
@@ -108,6 +111,9 @@ def plan_shards(config: BuildConfig) -> list[ShardPlan]:
                 raise AnnotationError(f"clip {record.id!r} is listed in {annotation_path(config.annotations, split)} "
                                       f"and in {annotation_path(config.annotations, split_of[record.id])}: a clip "
                                       "belongs to one split; remove it from one of them")
+        if not records:  # the loader would name this split missing, though it was built
+            raise AnnotationError(f"{annotation_path(config.annotations, split)} lists no clips: drop --split {split}, "
+                                  "or point --annotations at the label files of a dataset that has them")
         starts = range(0, len(records), config.clips_per_shard)
         plans += [ShardPlan(split, i, records[start:start + config.clips_per_shard]) for i, start in enumerate(starts)]
     return plans
@@ -170,6 +176,20 @@ def verified_stats(out: Path, plan: ShardPlan, digest: str, check_hash: bool = T
     return stats
 
 
+def id_fault(clip_id: str) -> str | None:
+    """Why `clip_id` cannot key a clip's tar members (`<id>.json`, `<id>.jpgs`), or None when it can."""
+    if not clip_id or any(c in clip_id for c in "./\\"):
+        return "tar keys must not be empty nor contain '.', '/' or '\\'"
+    if len(f"{clip_id}.jpgs".encode()) > MAX_MEMBER_NAME:
+        return f"the tar format's member names hold at most {MAX_MEMBER_NAME} bytes, so an id at most {MAX_MEMBER_NAME - 5}"
+    return None
+
+
+def retryable(errors: list[dict]) -> list[dict]:
+    """The failures among `errors` (entries of errors.jsonl) that a later run may not repeat."""
+    return [error for error in errors if error["reason"] in RETRYABLE]
+
+
 def _error_entry(config: BuildConfig, record: ClipRecord, reason: str, detail: str) -> dict:
     return {"id": record.id, "split": record.split, "path": str(config.videos / f"{record.id}.webm"),
             "reason": reason, "detail": detail}
@@ -188,8 +208,8 @@ def write_shard(config: BuildConfig, plan: ShardPlan, results, digest: str, prog
     errors, frame_counts, clips, frames = [], Counter(), 0, 0
     with open(partial, "wb") as file, open_writer(file) as tar:
         for record in plan.records:
-            if not record.id or any(c in record.id for c in "./\\"):
-                errors.append(_error_entry(config, record, "invalid-id", "tar keys must not contain '.', '/' or '\\'"))
+            if fault := id_fault(record.id):
+                errors.append(_error_entry(config, record, "invalid-id", fault))
                 continue
             result = next(results)
             progress.update(1)
@@ -234,6 +254,9 @@ def assemble_manifest(config: BuildConfig, settings: dict, plans: list[ShardPlan
 
 
 def validate(config: BuildConfig) -> None:
+    repeated = sorted({split for split in config.splits if config.splits.count(split) > 1})
+    if repeated:  # each of its shards would be built and listed twice, so its clips would train twice an epoch
+        raise BuildError(f"--split {repeated[0]} is given more than once: name each split once")
     for name in annotation_files(config.splits):
         if not annotation_path(config.annotations, name).is_file():
             raise BuildError(f"{annotation_path(config.annotations, name)}: file not found; --annotations must be "
@@ -276,8 +299,10 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
     check_settings(config.out, settings, config.part)
     digest = settings_digest(settings)
     kept = {plan.name: stats for plan in mine if (stats := verified_stats(config.out, plan, digest)) is not None}
+    if config.retry_failed:
+        kept = {name: stats for name, stats in kept.items() if not retryable(stats["errors"])}
     todo = [plan for plan in mine if plan.name not in kept]
-    valid = [r for plan in todo for r in plan.records if r.id and not any(c in r.id for c in "./\\")]
+    valid = [r for plan in todo for r in plan.records if not id_fault(r.id)]
     log(f"shards: {len(plans)} in all, {len(mine)} in part {config.part}/{config.num_parts}, "
         f"{len(kept)} already complete, {len(todo)} to build ({len(valid)} clips, {config.workers} workers)")
     started = time.monotonic()
@@ -299,6 +324,9 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
             f"{new_frames / elapsed:.0f} frames/s")
     log(f"part {config.part}: {total - len(failed)} clips in shards, {len(failed)} failed "
         f"({', '.join(f'{r}: {n}' for r, n in sorted(Counter(e['reason'] for e in failed).items())) or 'none'})")
+    if (again := retryable(failed)) and not config.retry_failed:
+        log(f"{len(again)} of the failures may not happen again ({', '.join(sorted(set(e['reason'] for e in again)))}): "
+            "once their files are there, re-run with --retry-failed to rebuild the shards they are in")
     manifest = assemble_manifest(config, settings, plans, digest)
     if manifest is None:
         log(f"other parts are not done yet: re-run any part after they finish to write {MANIFEST_FILE}")

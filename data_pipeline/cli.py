@@ -33,7 +33,7 @@ def _build(args: argparse.Namespace) -> int:
         size=args.size, resize=args.resize, encoding=args.encoding, quality=args.quality,
         clips_per_shard=args.clips_per_shard, min_frames=args.min_frames, max_clips=args.max_clips,
         workers=args.workers, part=args.part, num_parts=args.num_parts, max_error_rate=args.max_error_rate,
-        timeout=args.timeout)
+        timeout=args.timeout, retry_failed=args.retry_failed)
     try:
         _, status = build(config)
     except (BuildError, AnnotationError) as error:
@@ -109,6 +109,9 @@ def parser() -> argparse.ArgumentParser:
     flag("--max-error-rate", metavar="F", type=float, default=0.01,
          help="exit non-zero when more than this fraction of clips fail (default 0.01)")
     flag("--timeout", metavar="S", type=float, default=30.0, help="seconds one clip may take to decode (default 30)")
+    flag("--retry-failed", action="store_true",
+         help="rebuild the shards holding clips that failed as missing, timed out or crashed (e.g. once the "
+              "missing videos are there); other failures are facts of the files and stay")
     build.set_defaults(run=_build)
 
     inspect = commands.add_parser("inspect", help="counts per split, frames, bytes, errors by reason")
@@ -130,7 +133,8 @@ def parser() -> argparse.ArgumentParser:
     sample = commands.add_parser("sample-data", help="write the built-in stochastic-scene dataset in SSv2's format")
     flag = sample.add_argument
     flag("--out", metavar="DIR", type=Path, required=True, help="output directory (annotations/, videos/)")
-    flag("--clips", metavar="N", type=at_least(1), default=96, help="good clips over all splits (default 96)")
+    flag("--clips", metavar="N", type=at_least(3), default=96,
+         help="good clips over all splits, at least 3: one each for validation and test (default 96)")
     flag("--with-broken", action="store_true",
          help="add corrupt, truncated, empty, missing, too-short and non-video entries")
     flag("--seed", metavar="N", type=at_least(0), default=0, help="seed of the scenes (default 0)")

@@ -3,8 +3,10 @@ reshuffles the shards every epoch (Lightning does not call `set_epoch` on an Ite
 
 Train: shards shuffled with `seed + epoch`, split by rank and worker, a shuffle buffer, and the same
 number of batches on every rank (see `loader.py`). Validation: a fixed order and a fixed seed, so
-every evaluation sees the same `val_batches` batches (rounded down to a multiple of the workers) with
-the same gaps, for the per-k metrics the model computes from `gaps`. The workers of both loaders start
+every evaluation sees the same `val_batches` batches (rounded down to a multiple of the workers, at least
+one per worker) with the same gaps, for the per-k metrics the model computes from `gaps`. Which sequences
+those are depends on the number of validation streams (ranks × workers): compare validation figures between
+runs with the same `--data.num_workers` and devices. The workers of both loaders start
 once and stay for the whole fit (see `loader.py` for how they follow the epoch).
 
     trainer = lightning.Trainer(callbacks=[SetEpoch()])
@@ -16,6 +18,7 @@ from __future__ import annotations
 import warnings
 
 import lightning
+from lightning.pytorch.utilities import rank_zero_info
 
 from .loader import LoaderError, SequenceDataset, check_worker_priority, make_dataloader, shard_set
 from .shard_format import read_manifest
@@ -79,6 +82,12 @@ class ShardDataModule(lightning.LightningDataModule):
                                                batches_per_worker=max(1, hp.val_batches // max(1, workers)), **common)
             except LoaderError as error:
                 raise LoaderError(f"{error}; or train without validation (--trainer.limit_val_batches 0)") from None
+            clips, sequences = sum(val_shards.eligible(hp.seq_len)), world_size * len(self.val_set) * hp.batch_size
+            if clips < sequences:  # fine for the per-k metrics (each repeat has other gaps); worth knowing
+                rank_zero_info(f"validation reads {sequences} sequences ({world_size} ranks × {len(self.val_set)} "
+                               f"batches of {hp.batch_size}) from {clips} clips of at least {hp.seq_len} frames, so clips "
+                               f"repeat within an evaluation, with other gaps; --data.val_batches "
+                               f"{max(1, clips // (world_size * hp.batch_size))} reads each at most once")
 
     def train_dataloader(self):
         if self.trainer is not None and not any(isinstance(c, SetEpoch) for c in self.trainer.callbacks):

@@ -45,6 +45,7 @@ import random
 import signal
 import threading
 import warnings
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
@@ -118,14 +119,19 @@ def shard_samples(sources: Iterator[dict]) -> Iterator[dict]:
 def to_sequence(sample: dict, seq_len: int, k_max: int, rng: np.random.Generator) -> dict | None:
     """A tar sample → its sequence (the L frame indices, the facts, the still-encoded frames member);
     None for a clip shorter than L frames."""
-    metadata = json.loads(sample["json"])
-    indices = sample_indices(metadata["num_frames"], seq_len, k_max, rng)  # int64 [L]
+    try:
+        metadata = json.loads(sample["json"])
+        num_frames, label, clip_id = metadata["num_frames"], metadata["class_index"], metadata["id"]
+        extension = next(name for name in ("jpgs", "npy") if name in sample)
+    except (KeyError, TypeError, ValueError, StopIteration) as error:
+        what = "no frames member (.jpgs or .npy)" if isinstance(error, StopIteration) else f"{type(error).__name__}: {error}"
+        raise LoaderError(f"clip {sample['__key__']} of shard {sample['__url__']}: not a HAUWM clip ({what}); "
+                          f"{VERIFY_HINT}") from None
+    indices = sample_indices(num_frames, seq_len, k_max, rng)  # int64 [L]
     if indices is None:
         return None
-    extension = "jpgs" if "jpgs" in sample else "npy"
     return {"frames_member": sample[extension], "extension": extension, "indices": indices,
-            "num_frames": metadata["num_frames"], "label": metadata["class_index"], "id": metadata["id"],
-            "url": sample["__url__"]}
+            "num_frames": num_frames, "label": label, "id": clip_id, "url": sample["__url__"]}
 
 
 def decode_sequence(sequence: dict, indices, out: np.ndarray | None = None) -> np.ndarray:
@@ -197,6 +203,7 @@ class SequenceDataset(IterableDataset):
             raise LoaderError(f"split {shards.split!r} has {clips} clips of at least {seq_len} frames, fewer than "
                               f"one batch of {batch_size} for each of {streams} ranks × workers; lower batch_size")
         self.urls = [url for url, _ in usable]
+        self.eligible = dict(usable)  # url -> its clips of at least seq_len frames, as the manifest counts them
         self.batch_size, self.seq_len, self.k_max = batch_size, seq_len, k_max
         self.shuffle, self.shuffle_buffer, self.seed, self.continuous = shuffle, shuffle_buffer, seed, continuous
         self.split = shards.split  # for error messages: a fit reads train and validation shards
@@ -246,16 +253,27 @@ class SequenceDataset(IterableDataset):
             yield {"url": url}
 
     def _passes(self, urls: list[str], rng: np.random.Generator, worker: int) -> Iterator[dict]:
-        """Tar samples from this stream's shards, pass after pass (the batch cap ends the epoch); each
-        pass in a new shard order, shuffled through the buffer within the pass, so no clip repeats
-        before every clip of the stream has come once."""
+        """Sequences from this stream's shards, pass after pass (the batch cap ends the epoch); each pass in a
+        new shard order, shuffled through the buffer within the pass, so no clip repeats before every clip of
+        the stream has come once. A pass that gives fewer sequences than the manifest promises for these shards
+        is an error (they are not the shards it describes); without it, a stream of shards that give none would
+        spin forever."""
         while True:
             order = [urls[i] for i in rng.permutation(len(urls))] if self.shuffle else urls
             samples = shard_samples(self._sources(order, worker))
             if self.shuffle and self.shuffle_buffer > 1:
                 samples = wds.shuffle(self.shuffle_buffer, initial=self.shuffle_buffer,
                                       rng=random.Random(int(rng.integers(2**63))))(samples)
-            yield from samples
+            given: Counter[str] = Counter()  # url -> sequences it gave in this pass
+            for sequence in filter(None, (to_sequence(sample, self.seq_len, self.k_max, rng) for sample in samples)):
+                given[sequence["url"]] += 1
+                yield sequence
+            short = [f"{url} gave {given[url]} where the manifest counts {self.eligible[url]}"
+                     for url in urls if given[url] < self.eligible[url]]
+            if short:
+                raise LoaderError(f"shards are not the ones manifest.json describes (replaced, truncated or copied from "
+                                  f"another build); clips of at least seq_len={self.seq_len} frames: "
+                                  f"{'; '.join(short)}; {VERIFY_HINT}")
 
     def __iter__(self) -> Iterator[dict | LoaderError]:
         """This worker's batches of the epoch (and, `continuous`, of the epochs after it). A DataLoader takes
@@ -277,8 +295,7 @@ class SequenceDataset(IterableDataset):
         """Stream `stream`'s batches of `epoch`, after the first `skipped`, read by DataLoader worker `worker`."""
         rng = np.random.default_rng([self.seed, epoch, rank, stream])
         urls = self.stream_urls(stream, epoch)
-        sequences = (to_sequence(sample, self.seq_len, self.k_max, rng) for sample in self._passes(urls, rng, worker))
-        remaining = islice(filter(None, sequences), skipped * self.batch_size, None)
+        remaining = islice(self._passes(urls, rng, worker), skipped * self.batch_size, None)
         batches = wds.batched(self.batch_size, collation_fn=collate, partial=False)(remaining)
         return islice(batches, max(0, self.batches_per_worker - skipped))
 

@@ -53,6 +53,10 @@ def write_preview(directory: Path, out: Path, split: str | None = None, clips: i
                 break
     except ValueError as error:  # a shard read_samples or decode_frames cannot read, named with what to do
         raise ShardDirError(str(error)) from None
+    except (KeyError, StopIteration) as error:  # a tar of other members than a shard's
+        raise ShardDirError(f"split {split!r} in {directory}: clip {files['__key__']} is not a HAUWM clip (no "
+                            f"{error if isinstance(error, KeyError) else 'frames member'}); check the shards with "
+                            f"`hauwm shards inspect {directory} --verify`") from None
     if not rows:
         raise ShardDirError(f"split {split!r} in {directory} has no clip with at least {length} frames")
     side = rows[0][2].shape[1] * SCALE

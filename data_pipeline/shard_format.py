@@ -67,6 +67,13 @@ def read_manifest(directory: str | Path) -> dict:
     if manifest["format_version"] != FORMAT_VERSION:
         raise ShardDirError(f"{path} is of shard format {manifest['format_version']!r}; this HAUWM reads format "
                             f"{FORMAT_VERSION}: build the shards again with it")
+    if not manifest["splits"]:
+        raise ShardDirError(f"{path} lists no split: its build found no clip; build again with label files that list "
+                            "clips (`hauwm shards build --split ...`)")
+    names = [shard["name"] for split in manifest["splits"].values() for shard in split["shards"]]
+    if len(set(names)) < len(names):  # written by a build given one --split twice: its clips would train twice
+        raise ShardDirError(f"{path} lists shard {next(n for n in names if names.count(n) > 1)} more than once; "
+                            "build the shards again, naming each --split once")
     return manifest
 
 
@@ -146,6 +153,8 @@ def read_samples(stream: BinaryIO, source: str) -> Iterator[dict]:
             for member in tar:
                 if not member.isfile():
                     raise ValueError(broken % f"member {member.name!r} is not a plain file")
+                if "." not in member.name:
+                    raise ValueError(broken % f"member {member.name!r} has no extension: not a shard of clips")
                 key, extension = member.name.split(".", 1)
                 if sample and key != sample["__key__"]:
                     yield sample

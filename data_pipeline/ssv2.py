@@ -56,7 +56,22 @@ def load_labels(annotations: Path) -> dict[str, int]:
     labels = _read_json(path)
     if not isinstance(labels, dict):
         raise AnnotationError(f"{path}: expected an object mapping class names to indices")
+    for name, index in labels.items():  # SSv2 writes the indices as strings of digits
+        if isinstance(index, bool) or not (isinstance(index, int) or isinstance(index, str) and index.isdigit()):
+            raise AnnotationError(f"{path}: class {name!r} has index {index!r}; an index must be a whole number "
+                                  "(or a string of digits, as SSv2 writes them)")
     return {name: int(index) for name, index in labels.items()}
+
+
+def _field(path: Path, position: int, entry: dict, name: str) -> str:
+    """Entry `position`'s string field `name`, or an `AnnotationError` naming the file, the entry and the field."""
+    if name not in entry:
+        raise AnnotationError(f"{path}: entry {position} (id {entry['id']!r}) has no field {name!r}; train and "
+                              "validation entries carry \"id\", \"label\", \"template\" and \"placeholders\"")
+    if not isinstance(entry[name], str):
+        raise AnnotationError(f"{path}: entry {position} (id {entry['id']!r}): field {name!r} must be a string, "
+                              f"got {json.dumps(entry[name])[:80]}")
+    return entry[name]
 
 
 def load_split(annotations: Path, split: str, labels: dict[str, int] | None = None) -> list[ClipRecord]:
@@ -73,6 +88,9 @@ def load_split(annotations: Path, split: str, labels: dict[str, int] | None = No
     for position, entry in enumerate(entries):
         if not isinstance(entry, dict) or "id" not in entry:
             raise AnnotationError(f"{path}: entry {position} is not an object with an \"id\": {str(entry)[:80]}")
+        if isinstance(entry["id"], bool) or not isinstance(entry["id"], (str, int)):
+            raise AnnotationError(f"{path}: entry {position} has id {json.dumps(entry['id'])[:80]}; an id must be a "
+                                  "string or a whole number (the name of its video, <id>.webm)")
         clip_id = str(entry["id"])
         if clip_id in first_of:  # shards key clips by id: a repeat would make two samples of one key
             raise AnnotationError(f"{path}: entries {first_of[clip_id]} and {position} both have id {clip_id!r}; "
@@ -81,12 +99,10 @@ def load_split(annotations: Path, split: str, labels: dict[str, int] | None = No
         if split == "test":  # no labels: the test split's entries are ids only
             records.append(ClipRecord(id=clip_id, split=split))
             continue
-        try:
-            name = class_name(entry["template"])
-            records.append(ClipRecord(id=clip_id, split=split, caption=entry["label"],
-                                      template=entry["template"], class_index=labels[name]))
-        except KeyError as missing:
-            raise AnnotationError(f"{path}: entry {position} (id {clip_id!r}): {missing} not found "
-                                  f"(class name {class_name(entry.get('template', ''))!r} must be a key of "
-                                  f"{annotation_path(annotations, 'labels')})") from None
+        template, caption = _field(path, position, entry, "template"), _field(path, position, entry, "label")
+        if class_name(template) not in labels:
+            raise AnnotationError(f"{path}: entry {position} (id {clip_id!r}): its class {class_name(template)!r} "
+                                  f"(the template without brackets) is not a key of {annotation_path(annotations, 'labels')}")
+        records.append(ClipRecord(id=clip_id, split=split, caption=caption, template=template,
+                                  class_index=labels[class_name(template)]))
     return records

@@ -44,7 +44,7 @@ def test_output_piped_into_a_reader_that_has_gone_ends_quietly(tmp_path):
 
 def test_an_output_path_where_a_file_is_is_named_in_one_line(tmp_path, capsys):
     (tmp_path / "taken").write_text("")
-    assert main(["shards", "sample-data", "--out", str(tmp_path / "taken" / "ssv2"), "--clips", "1"]) == 2
+    assert main(["shards", "sample-data", "--out", str(tmp_path / "taken" / "ssv2"), "--clips", "3"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("hauwm shards: error: ") and f"{tmp_path / 'taken'}" in err and "is a file" in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -241,3 +241,48 @@ def test_a_clip_listed_in_two_splits_is_refused_before_anything_is_built(sample_
     with pytest.raises(AnnotationError, match=rf"clip '{leaked['id']}' is listed in \S+validation.json and in "
                                               r"\S+train.json: a clip belongs to one split"):
         plan_shards(config)
+
+
+def test_a_repeated_or_empty_split_is_refused_before_anything_is_written(sample_ssv2, clean_annotations, tmp_path):
+    config = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path / "shards",
+                         splits=["validation", "validation"])
+    with pytest.raises(BuildError, match="--split validation is given more than once"):
+        build(config, log=quiet)
+    annotations = shutil.copytree(clean_annotations, tmp_path / "annotations")
+    annotation_path(annotations, "validation").write_text("[]")
+    config = dataclasses.replace(config, annotations=annotations, splits=["train", "validation"])
+    with pytest.raises(AnnotationError, match=r"validation.json lists no clips: drop --split validation"):
+        build(config, log=quiet)
+    assert not config.out.exists()
+
+
+def test_an_id_too_long_for_a_tar_member_is_recorded_not_fatal(sample_ssv2, clean_annotations, tmp_path):
+    annotations = shutil.copytree(clean_annotations, tmp_path / "annotations")
+    validation = annotation_path(annotations, "validation")
+    entries = json.loads(validation.read_text())
+    long_id = "7" * 96  # 96 + ".jpgs" = 101 bytes: one more than a USTAR member name holds
+    validation.write_text(json.dumps([entries[0] | {"id": long_id}] + entries[1:]))
+    config = BuildConfig(annotations=annotations, videos=sample_ssv2 / "videos", out=tmp_path / "shards",
+                         splits=["validation"], max_error_rate=0.5)
+    manifest, status = build(config, log=quiet)
+    errors = [json.loads(line) for line in (config.out / "errors.jsonl").read_text().splitlines()]
+    assert [(e["id"], e["reason"]) for e in errors] == [(long_id, "invalid-id")] and "at most 95" in errors[0]["detail"]
+    assert manifest["splits"]["validation"]["clips"] == len(entries) - 1 and status == 0
+
+
+def test_retry_failed_rebuilds_the_shard_of_a_clip_that_was_missing(sample_ssv2, clean_annotations, tmp_path):
+    videos = shutil.copytree(sample_ssv2 / "videos", tmp_path / "videos")
+    late = json.loads(annotation_path(clean_annotations, "validation").read_text())[1]["id"]
+    (videos / f"{late}.webm").rename(tmp_path / "late.webm")  # not downloaded yet
+    config = BuildConfig(annotations=clean_annotations, videos=videos, out=tmp_path / "shards", splits=["validation"],
+                         max_error_rate=0.5)
+    manifest, _ = build(config, log=quiet)
+    assert manifest["errors"]["by_reason"] == {"missing": 1}
+    (tmp_path / "late.webm").rename(videos / f"{late}.webm")  # the download finished
+    lines = []
+    manifest, _ = build(config, log=lines.append)  # a plain re-run keeps the shard, and says how to retry
+    assert manifest["errors"]["by_reason"] == {"missing": 1}
+    assert any("1 of the failures may not happen again (missing)" in line and "--retry-failed" in line for line in lines)
+    manifest, status = build(dataclasses.replace(config, retry_failed=True), log=quiet)
+    assert manifest["errors"]["total"] == 0 and manifest["splits"]["validation"]["clips"] == 3 and status == 0
+    assert (config.out / "errors.jsonl").read_text() == ""

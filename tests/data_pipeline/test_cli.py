@@ -102,14 +102,14 @@ def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
     assert all(isinstance(index, str) for index in labels.values())
     assert json.loads((tmp_path / "broken.json").read_text()) == {}
     written = {path: path.read_bytes() for path in annotations.iterdir()}
-    assert main(["sample-data", "--out", str(tmp_path), "--clips", "2", "--workers", "1"]) == 2  # not over a dataset
+    assert main(["sample-data", "--out", str(tmp_path), "--clips", "3", "--workers", "1"]) == 2  # not over a dataset
     assert f"{tmp_path} already holds a dataset (annotations/, videos/)" in capsys.readouterr().err
     assert {path: path.read_bytes() for path in annotations.iterdir()} == written
 
 
 @pytest.mark.parametrize(("argv", "message"), [
     (["preview", "DIR", "--out", "p.png", "--clips", "0"], "argument --clips: must be a whole number >= 1, got '0'"),
-    (["sample-data", "--out", "OUT", "--clips", "-3"], "argument --clips: must be a whole number >= 1"),
+    (["sample-data", "--out", "OUT", "--clips", "-3"], "argument --clips: must be a whole number >= 3"),
     (["preview", "DIR", "--out", "p.png", "--seed", "-1"], "argument --seed: must be a whole number >= 0, got '-1'"),
     (["sample-data", "--out", "OUT", "--seed", "x"], "argument --seed: must be a whole number >= 0, got 'x'"),
 ])

@@ -3,8 +3,10 @@ rank and worker over uneven shards, the epoch reshuffle, persistent workers that
 resume position, and the LightningDataModule around it."""
 
 import json
+import logging
 import multiprocessing
 import os
+import re
 import signal
 import tarfile
 import warnings
@@ -272,6 +274,22 @@ def test_datamodule_validates_its_inputs(built_shards, tmp_path):
         ShardDataModule(str(tmp_path)).setup("fit")
     with pytest.raises(LoaderError, match="has no split 'test'.*--split test"):
         ShardDataModule(str(built_shards), val_split="test", batch_size=2, seq_len=8).setup("fit")
+    manifest = json.loads((built_shards / "manifest.json").read_text())
+    for change, message in (({"splits": {}}, "lists no split"),
+                            ({"splits": manifest["splits"] | {"validation": manifest["splits"]["train"]}},
+                             "lists shard train-000000.tar more than once")):
+        (tmp_path / "manifest.json").write_text(json.dumps(manifest | change))
+        with pytest.raises(ShardDirError, match=message):
+            ShardDataModule(str(tmp_path)).setup("fit")
+
+
+def test_validation_says_when_its_clips_repeat_within_an_evaluation(built_shards, caplog):
+    validation_clips = sum(shard_set(built_shards, "validation").eligible(8))
+    data = ShardDataModule(str(built_shards), batch_size=2, seq_len=8, num_workers=0, val_batches=validation_clips)
+    with caplog.at_level(logging.INFO):
+        data.setup("validate")
+    assert re.search(rf"validation reads {2 * validation_clips} sequences .* from {validation_clips} clips .* "
+                     rf"--data.val_batches {validation_clips // 2} reads each at most once", caplog.text)
 
 
 def test_a_fit_without_validation_needs_no_usable_validation_split(built_shards, monkeypatch):

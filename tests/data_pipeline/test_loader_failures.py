@@ -72,6 +72,43 @@ def test_frames_that_do_not_decode_name_the_clip_and_its_shard(built_shards, tmp
             list(loader)
 
 
+def empty(shard) -> None:
+    with open(shard, "wb") as file, open_writer(file):
+        pass
+
+
+def drop_num_frames(shard) -> None:
+    """Rewrite the shard with its first clip's metadata lacking `num_frames`."""
+    with tarfile.open(shard) as tar:
+        members = [(member.name, tar.extractfile(member).read()) for member in tar]
+    with open(shard, "wb") as file, open_writer(file) as tar:
+        for i in range(0, len(members), 2):
+            metadata = json.loads(members[i + 1][1])
+            if i == 0:
+                del metadata["num_frames"]
+            add_clip(tar, metadata, members[i][1], "jpgs")
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_shard_with_fewer_clips_than_the_manifest_says_is_an_error_not_a_hang(built_shards, tmp_path, workers):
+    shards, broken = copy_with_broken_shard(built_shards, tmp_path, empty)
+    dataset = SequenceDataset(shard_set(shards, "train"), batch_size=2, seq_len=8, num_workers=workers)
+    with pytest.raises(LoaderError, match=rf"shards are not the ones manifest.json describes .* clips of at least "
+                                          rf"seq_len=8 frames: {broken} gave 0 where the manifest counts [1-9]; check .*--verify"):
+        for epoch in range(4):  # every epoch that needs a second pass over the emptied shard's stream finds out
+            dataset.set_epoch(epoch)
+            list(make_dataloader(dataset))
+
+
+def test_a_clip_without_its_metadata_is_named_with_its_own_shard(built_shards, tmp_path):
+    shards, broken = copy_with_broken_shard(built_shards, tmp_path, drop_num_frames)
+    dataset = SequenceDataset(shard_set(shards, "train"), batch_size=2, seq_len=8, num_workers=0)
+    with pytest.raises(LoaderError, match=rf"clip \S+ of shard {broken}: not a HAUWM clip \(KeyError: 'num_frames'\)"):
+        for epoch in range(3):
+            dataset.set_epoch(epoch)
+            list(dataset)
+
+
 def test_a_worker_that_stalls_is_reported_after_the_timeout(built_shards):
     slow = shard_set(built_shards, "train", shard_url=f"pipe:sleep 4; cat {built_shards}/{{name}}")
     dataset = SequenceDataset(slow, batch_size=2, seq_len=8, num_workers=2)

@@ -74,3 +74,32 @@ def test_a_repeated_id_or_an_entry_without_one_is_refused_by_position(annotation
     write(annotations, split, entries + [{"label": "no id"}])
     with pytest.raises(AnnotationError, match=rf"{split}.json: entry {len(entries)} is not an object with an \"id\""):
         load_split(annotations, split)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"template": None}, r"entry 0 \(id '78687'\): field 'template' must be a string, got null"),
+    ({"label": 7}, r"entry 0 \(id '78687'\): field 'label' must be a string, got 7"),
+    ({"id": None}, r"entry 0 has id null; an id must be a string or a whole number"),
+    ({"id": True}, r"entry 0 has id true"),
+])
+def test_a_field_of_the_wrong_type_is_refused_with_the_entry_and_the_field(annotations, change, message):
+    entries = json.loads((annotations / "something-something-v2-train.json").read_text())
+    write(annotations, "train", [entries[0] | change] + entries[1:])
+    with pytest.raises(AnnotationError, match=message):
+        load_split(annotations, "train")
+
+
+def test_a_missing_caption_is_named_as_missing_not_as_an_unknown_class(annotations):
+    entries = json.loads((annotations / "something-something-v2-train.json").read_text())
+    del entries[2]["label"]
+    write(annotations, "train", entries)
+    with pytest.raises(AnnotationError, match=r"entry 2 \(id '3'\) has no field 'label'"):
+        load_split(annotations, "train")
+
+
+@pytest.mark.parametrize("index", ["two", [2], True])
+def test_a_class_index_that_is_not_a_whole_number_is_refused(annotations, index):
+    labels = json.loads((annotations / "something-something-v2-labels.json").read_text())
+    write(annotations, "labels", labels | {"Pushing something from left to right": index})
+    with pytest.raises(AnnotationError, match=r"labels.json: class 'Pushing something from left to right' has index"):
+        load_labels(annotations)
