@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -127,7 +128,8 @@ class FinetuneConfig:
         for names, rule, allowed in RANGES:
             for name in names:
                 value = getattr(self, name)
-                if value is not None and not allowed(value):
+                if value is not None and not (math.isfinite(value) and allowed(value)):
+                    rule = rule if math.isfinite(value) else "a finite number"
                     raise ConfigError(f"setting {name} must be {rule}, got {value!r}")
         if self.train_every is None:  # DreamerV2 and APV update once every 5 agent steps, each action_repeat frames
             self.train_every = 5 * self.action_repeat

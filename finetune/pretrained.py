@@ -30,8 +30,9 @@ class PretrainedError(ValueError):
 def load_pretrained(directory: str | Path, device: torch.device | str = "cpu") -> FrozenWorldModel:
     directory = Path(directory)
     if not directory.is_dir():
-        raise PretrainedError(f"--pretrained {directory}: no such directory; pass the output of "
-                              "`hauwm pretrain export CKPT --out DIR`")
+        what = ("is a file, not an export directory (a checkpoint? export it first with `hauwm pretrain export "
+                f"{directory} --out DIR`)" if directory.exists() else "no such directory")
+        raise PretrainedError(f"--pretrained {directory}: {what}; pass the output of `hauwm pretrain export CKPT --out DIR`")
     try:
         config = read_config(directory)
         _check_convention(config, directory / "config.json")
@@ -39,19 +40,21 @@ def load_pretrained(directory: str | Path, device: torch.device | str = "cpu") -
     except ExportError as error:
         raise PretrainedError(f"--pretrained {directory}: {error}") from None
     if model.rssm.feature_dim != config.get("feature_dim", model.rssm.feature_dim):
-        raise PretrainedError(f"--pretrained {directory}: config.json says feature_dim {config['feature_dim']}, "
+        raise PretrainedError(f"--pretrained {directory}: config.json says feature_dim {config['feature_dim']!r}, "
                               f"the weights give {model.rssm.feature_dim}; re-export the checkpoint")
     return model  # load_frozen returns it frozen and in eval mode
 
 
 def _check_convention(config: dict, path: Path) -> None:
     """What the world_model settings (checked by read_config) do not cover: the frames fine-tuning feeds in."""
-    if list(config.get("image_shape", IMAGE_SHAPE)) != list(IMAGE_SHAPE):
-        raise PretrainedError(f"{path}: image_shape {config['image_shape']} differs from the {list(IMAGE_SHAPE)} "
+    image_shape = config.get("image_shape", IMAGE_SHAPE)
+    if not isinstance(image_shape, (list, tuple)) or list(image_shape) != list(IMAGE_SHAPE):
+        raise PretrainedError(f"{path}: image_shape {image_shape!r} differs from the {list(IMAGE_SHAPE)} "
                               "frames the environments give")
     normalisation = config.get("normalisation", NORMALISATION)
-    if (normalisation.get("scale"), normalisation.get("offset")) != (NORMALISATION["scale"], NORMALISATION["offset"]):
-        raise PretrainedError(f"{path}: image normalisation {normalisation} differs from this code's "
+    if not isinstance(normalisation, dict) or \
+            (normalisation.get("scale"), normalisation.get("offset")) != (NORMALISATION["scale"], NORMALISATION["offset"]):
+        raise PretrainedError(f"{path}: image normalisation {normalisation!r} differs from this code's "
                               f"{NORMALISATION['formula']}")
 
 

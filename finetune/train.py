@@ -200,6 +200,25 @@ def refuse_changed_settings(cfg: FinetuneConfig, written: dict[str, object], pat
                             "in another --logdir")
 
 
+def refuse_other_run(cfg: FinetuneConfig) -> None:
+    """A FinetuneError if cfg.logdir holds the config.yaml of a run that stopped before its first checkpoint with
+    other settings than cfg's (outside RESUMABLE): starting again there would train on that run's replay episodes
+    and overwrite its config.yaml."""
+    path = Path(cfg.logdir) / "config.yaml"
+    try:
+        written = yaml.safe_load(path.read_text()) if path.is_file() else None
+    except (OSError, yaml.YAMLError):
+        written = None  # unreadable: nothing to compare with; it is written again
+    if not isinstance(written, dict):
+        return
+    changed = [f"{key}={value!r} (asked: {getattr(cfg, key)!r})"
+               for key, value in differing_settings(cfg, written, [key for key in written if key not in RESUMABLE])]
+    if changed:
+        raise FinetuneError(f"{cfg.logdir} holds a run with {', '.join(changed[:3])} that stopped before its first "
+                            f"checkpoint; its replay episodes would train this one: train in another --logdir, or "
+                            f"delete {cfg.logdir} first")
+
+
 def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
                     rng: np.random.Generator | None = None, resuming: bool = False) -> dict[str, float]:
     """Restore `agent` (weights, optimizers), torch's and `rng`'s states from `path`; -> its counters. `resuming`:
@@ -393,6 +412,8 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
         counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng, resuming=True)
         unit, key = step_unit(cfg.paradigm)
         print(f"resuming {checkpoint} at {unit} {int(counters[key])}", file=sys.stderr)
+    else:
+        refuse_other_run(cfg)
     best = Path(cfg.logdir) / BEST
     if best.exists():  # a run stopped between keeping an evaluation and its next checkpoint: its best.pt is better
         #                than the checkpoint's counters know, and a worse evaluation must not replace it on resume

@@ -148,6 +148,9 @@ def read_checkpoint(checkpoint: str | Path) -> tuple[dict[str, Any], WorldModelC
     """A `hauwm pretrain fit` checkpoint (read with weights_only=True) and the world-model sizes it was trained
     with; an ExportError naming the file if it cannot be read or is not one (for export and for resuming a fit)."""
     path = Path(checkpoint)
+    if path.is_dir():
+        raise ExportError(f"{path} is a directory (an export?), not a checkpoint: pass a .ckpt file, e.g. "
+                          "RUN/checkpoints/last.ckpt")
     if not path.is_file():
         raise ExportError(f"checkpoint {path} not found (fit writes RUN/checkpoints/last.ckpt)")
     try:
@@ -172,7 +175,13 @@ def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dic
     hparams = state["hyper_parameters"]
     model = WorldModel(config)
     prefix = "world_model."
-    model.load_state_dict({name[len(prefix):]: t for name, t in state["state_dict"].items() if name.startswith(prefix)})
+    try:
+        model.load_state_dict({name[len(prefix):]: t for name, t in state["state_dict"].items()
+                               if name.startswith(prefix)})
+    except RuntimeError as err:  # names or shapes that are not those of its own world_model settings
+        detail = " ".join(str(err).split())[:300]
+        raise ExportError(f"{path}: its weights do not fit its own world_model settings ({detail}); use a checkpoint "
+                          "written by `hauwm pretrain fit` of this version") from None
     log_lambda = state["state_dict"].get("log_lambda")
     provenance = {
         "checkpoint": str(path.resolve()),

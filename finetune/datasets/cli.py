@@ -166,7 +166,7 @@ def collect(args: argparse.Namespace) -> None:
             metadata.update(checkpoint=str(Path(args.checkpoint) / checkpoint), actions="sample" if args.sample else "mode")
         total, episodes = args.episodes, policy_episodes(env, policy, args.episodes)
 
-    summary = Summary(metadata["task"])
+    summary = Summary(metadata["task"], metadata.get("action_repeat"))
     start = time.perf_counter()
     description = f"{metadata['source']} episodes of {metadata['task']} (hauwm datasets collect)"
     dataset = write_dataset(args.dataset_id, tracked(episodes, summary, total, args.dataset_id, not args.no_progress),
@@ -199,7 +199,7 @@ def inspect(args: argparse.Namespace) -> None:
             action_dim = env.action_space.shape[0]
     task = args.task or settings.get("task")
     with_success = has_success(dataset)
-    summary = Summary(task)
+    summary = Summary(task, settings.get("action_repeat"))
     for episode in iterate_episodes(args.dataset_id, task, action_dim, progress=not args.no_progress):
         if not with_success:
             episode.pop("success")

@@ -107,9 +107,13 @@ def open_dataset(dataset_id: str):
         raise DatasetError(_missing_message(dataset_id))
     try:
         dataset = minari.load_dataset(dataset_id)
+    except ImportError as error:  # a storage format whose extra is not installed, e.g. Arrow
+        raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} is stored in a format this "
+                           f"installation cannot read ({error})") from None
     except (ValueError, OSError, KeyError, AssertionError, json.JSONDecodeError) as error:
         raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} could not be read by Minari "
-                           f"({type(error).__name__}: {error}); write it again") from None
+                           f"{minari.__version__} ({type(error).__name__}: {error}); a dataset of another Minari "
+                           "version needs that version, a damaged one must be written again") from None
     if dataset.total_episodes == 0:
         raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} holds no episodes: collect into it "
                            "again (delete the directory first)")
@@ -151,9 +155,10 @@ def image_view(dataset_id: str, space: gymnasium.Space) -> ImageView:
         images = [name for name, sub in space.spaces.items() if _rgb_layout(sub) is not None]
         named = [name for name in IMAGE_KEYS if name in images]
         if not named and len(images) != 1:
-            raise DatasetError(f"dataset {dataset_id!r}: its Dict observations {list(space.spaces)} hold "
-                               f"{'no' if not images else 'several'} RGB image entries {images}; HAUWM needs one, "
-                               f"named one of {', '.join(IMAGE_KEYS)}")
+            entries = ", ".join(f"{name} {sub}" for name, sub in space.spaces.items())
+            raise DatasetError(f"dataset {dataset_id!r}: its Dict observations ({entries}) hold "
+                               f"{'no' if not images else 'several'} uint8 RGB image entries; HAUWM needs one "
+                               f"(uint8, (H, W, 3) or (3, H, W)), named one of {', '.join(IMAGE_KEYS)}")
         key = named[0] if named else images[0]
         space = space.spaces[key]
     layout = _rgb_layout(space)
@@ -189,8 +194,9 @@ def check_actions(dataset_id: str, space: gymnasium.Space, task: str | None, act
         raise DatasetError(f"dataset {dataset_id!r}: actions have {space.shape[0]} dimensions, "
                            f"{task or 'the task'} has {action_dim}; use a dataset collected on that task")
     if not (np.allclose(space.low, -1.0) and np.allclose(space.high, 1.0)):
-        raise DatasetError(f"dataset {dataset_id!r}: action bounds are [{space.low.min():g}, {space.high.max():g}], "
-                           "HAUWM's tasks act in [-1, 1]; rescale the actions into [-1, 1] and write the dataset again")
+        bounds = ", ".join(f"[{low:g}, {high:g}]" for low, high in zip(space.low, space.high))
+        raise DatasetError(f"dataset {dataset_id!r}: action bounds per dimension are {bounds}; HAUWM's tasks act in "
+                           "[-1, 1] in every dimension: rescale the actions into [-1, 1] and write the dataset again")
 
 
 def has_success(dataset) -> bool:
@@ -243,9 +249,15 @@ def _to_replay_layout(dataset_id: str, index: int, raw: dict[str, Any], view: Im
     if rewards is None or len(rewards) == 0:
         raise DatasetError(f"{where} has no rewards; HAUWM's offline learners need the reward of every step")
     rewards = np.asarray(rewards, np.float32)
+    if rewards.ndim == 2 and rewards.shape[1] == 1:  # [T, 1], as some writers store a scalar per step
+        rewards = rewards[:, 0]
+    if rewards.ndim != 1:
+        raise DatasetError(f"{where}: rewards are shaped {list(rewards.shape)}; HAUWM needs one reward a step, [T]")
     if not np.all(np.isfinite(rewards)):
         raise DatasetError(f"{where}: rewards are missing (NaN or infinite); write the dataset with real rewards")
     actions = np.asarray(raw["actions"], np.float32)
+    if not np.all(np.isfinite(actions)):  # NaN would pass the bounds check below and train every weight into NaN
+        raise DatasetError(f"{where}: actions hold NaN or infinite values; write the dataset with the actions taken")
     obs = view.frames(raw["observations"])
     steps = len(rewards)
     if len(actions) != steps or len(obs) != steps + 1:
@@ -361,16 +373,19 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
 def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
     """Concatenate the episodes of `source_ids` into a new dataset `out_id` (e.g. medium replay + expert).
 
-    The sources must agree on the task and the env settings they were collected with (where they say);
-    the new dataset is JPEG-encoded only if every source is (JPEG frames are decoded and encoded again),
+    The sources must agree on the task and the env settings they were collected with (where they say; the
+    new dataset records what those that say agree on, also when a source made elsewhere says nothing); the new dataset is JPEG-encoded only if every source is (JPEG frames are decoded and encoded again),
     and keeps success flags only if every source has them.
     """
     if len(source_ids) < 2:
         raise DatasetError("merge needs at least two datasets")
     datasets = [open_dataset(dataset_id) for dataset_id in source_ids]
     settings = [hauwm_metadata(dataset) for dataset in datasets]
+    agreed = {}  # what the sources that record it agree on, kept even where a source made elsewhere records nothing
     for key in ("task", "action_repeat", "fast_render", "image_size"):  # what offline RL and imitation check
         values = {s[key] for s in settings if key in s}
+        if len(values) == 1:
+            agreed[key] = values.pop()
         if len(values) > 1:
             described = ", ".join(f"{i} has {s.get(key)!r}" for i, s in zip(source_ids, settings))
             raise DatasetError(f"cannot merge datasets with different {key}: {described}; merge datasets collected "
@@ -390,7 +405,7 @@ def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
                 yield episode
 
     shared = {key: value for key, value in settings[0].items() if all(s.get(key) == value for s in settings[1:])}
-    merged = {**shared, "source": "merge", "merged": list(source_ids)}
+    merged = {**shared, **agreed, "source": "merge", "merged": list(source_ids)}
     dataset = write_dataset(out_id, episodes(), merged, jpeg=jpeg, description=f"merge of {', '.join(source_ids)}")
     dataset.storage.update_metadata({"combined_datasets": list(source_ids)})
     return dataset

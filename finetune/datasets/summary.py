@@ -10,11 +10,14 @@ from __future__ import annotations
 import numpy as np
 
 from finetune.envs.references import REFERENCE_RETURNS, normalised_return
+from finetune.envs.registry import episode_time_limit
 
 
 class Summary:
-    def __init__(self, task: str | None) -> None:
+    def __init__(self, task: str | None, action_repeat: int | None = None) -> None:
+        """`action_repeat`: the one the episodes were collected with (None: the suite's default)."""
         self.task = task
+        self.action_repeat = action_repeat
         self.returns: list[float] = []
         self.lengths: list[int] = []  # agent steps per episode
         self.successes: list[bool] = []  # success at any step of the episode, for episodes with a success flag
@@ -44,8 +47,10 @@ class Summary:
                  f"return          mean {s['return_mean']:.1f}, min {s['return_min']:.1f}, max {s['return_max']:.1f}"]
         if "normalised_return" in s:
             random_return, expert_return = REFERENCE_RETURNS[self.task]
+            full = episode_time_limit(self.task, self.action_repeat)
+            caveat = "" if high >= full else f"; episodes of {high} steps, not the suite's {full}: not comparable"
             lines.append(f"normalised      {s['normalised_return']:.3f} (Table 4: random {random_return:g}, "
-                         f"expert {expert_return:g})")
+                         f"expert {expert_return:g}{caveat})")
         if "success_rate" in s:
             lines.append(f"success rate    {s['success_rate']:.0%} ({sum(self.successes)} of {s['episodes']} episodes)")
         return lines

@@ -97,6 +97,7 @@ def test_cli_collects_expert_and_random_inspects_merges_and_lists(capsys):
         out = capsys.readouterr().out
         assert "episodes        2" in out and "steps           180 (90 per episode)" in out
         assert f"source          {source}" in out and "normalised" in out and "bytes per frame" in out
+        assert "episodes of 90 steps, not the suite's 500: not comparable" in out
         rates[source] = float(re.search(r"success rate\s+(\d+)%", out).group(1))
     assert rates["expert"] > rates["random"], rates  # the scripted expert closes the drawer in ~80 steps
 
@@ -249,11 +250,19 @@ def test_bad_actions_missing_rewards_and_empty_datasets_are_refused(random_episo
     frames = gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8)
     obs = np.zeros((4, 64, 64, 3), np.uint8)
     write_foreign("other/bounds-v0", frames, obs, gymnasium.spaces.Box(-2.0, 2.0, (4,), np.float32))
-    with pytest.raises(DatasetError, match=r"action bounds are \[-2, 2\]"):
+    with pytest.raises(DatasetError, match=r"action bounds per dimension are \[-2, 2\], \[-2, 2\], \[-2, 2\], \[-2, 2\]"):
         load_episodes("other/bounds-v0", task=TASK, action_dim=4)
     write_foreign("other/nan-v0", frames, obs, rewards=np.full(3, np.nan))
     with pytest.raises(DatasetError, match="rewards are missing"):
         load_episodes("other/nan-v0")
+    write_foreign("other/nanactions-v0", frames, obs, actions=np.full((3, 4), np.nan, np.float32))
+    with pytest.raises(DatasetError, match="episode 0: actions hold NaN or infinite values"):
+        load_episodes("other/nanactions-v0")
+    write_foreign("other/columnrewards-v0", frames, obs, rewards=np.arange(3.0)[:, None])  # [T, 1]: read as [T]
+    assert load_episodes("other/columnrewards-v0", progress=False)[0]["reward"].tolist() == [0, 0, 1, 2]
+    write_foreign("other/pairrewards-v0", frames, obs, rewards=np.ones((3, 2)))
+    with pytest.raises(DatasetError, match=r"episode 0: rewards are shaped \[3, 2\]; HAUWM needs one reward a step"):
+        load_episodes("other/pairrewards-v0")
 
     dataset = write_dataset("test/norewards-v0", iter(random_episodes[:1]), {"task": TASK})
     with h5py.File(dataset.storage.data_path / "main_data.hdf5", "a") as f:
@@ -312,3 +321,34 @@ def test_a_run_without_replay_episodes_says_how_to_record_its_agent(tmp_path, ca
     assert main(["collect", "--from-run", str(tmp_path), "--dataset-id", "test/replay-v0"]) == 2
     err = capsys.readouterr().err
     assert "an offline run never acts" in err and f"--policy agent --checkpoint {tmp_path}" in err
+
+
+def test_a_merge_with_a_dataset_made_elsewhere_keeps_the_task_the_others_record(random_episodes):
+    settings = {"task": TASK, "source": "random", "action_repeat": 1, "fast_render": True, "image_size": 64}
+    write_dataset("test/random-v0", iter(random_episodes[:1]), settings)
+    write_foreign("other/plain-v0", gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8), np.zeros((4, 64, 64, 3), np.uint8))
+    merged = merge_datasets(["test/random-v0", "other/plain-v0"], "test/mixed-v0", progress=False)
+    assert {key: hauwm_metadata(merged)[key] for key in settings if key != "source"} == \
+        {key: value for key, value in settings.items() if key != "source"}
+    with pytest.raises(DatasetError, match=f"collected on {TASK}, not metaworld_dial_turn"):
+        load_episodes("test/mixed-v0", task="metaworld_dial_turn")
+
+
+def test_a_dict_observation_without_a_uint8_image_names_its_entries():
+    floats = gymnasium.spaces.Dict({"pixels": gymnasium.spaces.Box(0.0, 1.0, (64, 64, 3), np.float32)})
+    write_foreign("other/floatpixels-v0", floats, {"pixels": np.zeros((4, 64, 64, 3), np.float32)})
+    with pytest.raises(DatasetError, match=r"Dict observations \(pixels Box\(0.0, 1.0, \(64, 64, 3\), float32\)\) hold no "
+                                           r"uint8 RGB image entries"):
+        load_episodes("other/floatpixels-v0")
+
+
+def test_a_dataset_in_a_storage_format_not_installed_is_refused_with_its_message(random_episodes, monkeypatch):
+    write_dataset("test/random-v0", iter(random_episodes[:1]), {"task": TASK})
+
+    def arrow(dataset_id):  # what minari raises for an Arrow dataset without pyarrow
+        raise ImportError('pyarrow is not installed. Please install it using `pip install "minari[arrow]"`')
+
+    monkeypatch.setattr(minari, "load_dataset", arrow)
+    with pytest.raises(DatasetError, match=r"'test/random-v0' at \S+ is stored in a format this installation cannot "
+                                           r"read \(pyarrow is not installed. .*minari\[arrow\]"):
+        open_dataset("test/random-v0")

@@ -100,7 +100,9 @@ def test_numeric_settings_are_range_checked():
                               ({"steps": True}, "steps must be a number, got True"),
                               ({"gamma": 1.5}, "gamma must be between 0 and 1"),
                               ({"actor_lr": 0}, "actor_lr must be > 0"),
-                              ({"prefill": -1}, "prefill must be >= 0")]:
+                              ({"prefill": -1}, "prefill must be >= 0"),
+                              ({"model_lr": float("inf")}, "model_lr must be a finite number, got inf"),
+                              ({"penalty_scale": "inf"}, "penalty_scale must be a finite number, got inf")]:
         with pytest.raises(ConfigError, match=message):
             load_config(None, settings)
     cfg = load_config(None, {"time_limit": None, "deter": None, "prefill": 0, "steps": "1e6"})  # None: the suite's/export's

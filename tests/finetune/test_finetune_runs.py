@@ -127,6 +127,13 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     assert main(run + ["--pretrained", str(other)]) == 2
     assert "another --pretrained export" in capsys.readouterr().err
     checkpoint = logdir / CHECKPOINT
+    written = (logdir / "config.yaml").read_text()
+    checkpoint.rename(tmp_path / "aside.pt")  # a run stopped before its first checkpoint: config.yaml and replay/ only
+    assert main(run + ["--pretrained", str(export_dir), "--set", "task=dmc_cheetah_run"]) == 2
+    assert (f"{logdir} holds a run with task='dmc_cartpole_swingup' (asked: 'dmc_cheetah_run') that stopped before its "
+            "first checkpoint; its replay episodes would train this one") in capsys.readouterr().err
+    assert (logdir / "config.yaml").read_text() == written
+    (tmp_path / "aside.pt").rename(checkpoint)
     checkpoint.write_bytes(checkpoint.read_bytes()[:3000])  # damaged (the run itself writes it atomically)
     assert main(run + ["--pretrained", str(export_dir)]) == 2
     err = capsys.readouterr().err

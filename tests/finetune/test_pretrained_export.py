@@ -52,8 +52,13 @@ def test_k1_embedding_follows_the_exported_convention(export_dir):
         (lambda d: _edit_sizes(d, deter=25), "does not match"),
         (lambda d: _edit_sizes(d, temporal_mode="log"), "temporal_mode must be one of .* got 'log'"),
         (lambda d: (d / "weights.safetensors").write_bytes(pickle.dumps({"w": torch.zeros(2)})), "cannot be read as safetensors"),
+        (lambda d: _edit_config(d, normalisation="x / 255"), "image normalisation 'x / 255' differs"),
+        (lambda d: _edit_config(d, image_shape=64), "image_shape 64 differs"),
+        (lambda d: _edit_config(d, feature_dim="32"), "config.json says feature_dim '32', the weights give"),
+        (lambda d: (shutil.rmtree(d), d.write_bytes(b"a checkpoint")), "is a file, not an export directory"),
     ],
-    ids=["no-dir", "no-config", "no-weights", "bad-json", "wrong-version", "wrong-shapes", "bad-embedding", "a-pickle"],
+    ids=["no-dir", "no-config", "no-weights", "bad-json", "wrong-version", "wrong-shapes", "bad-embedding", "a-pickle",
+         "normalisation-text", "shape-number", "feature-dim-text", "a-file"],
 )
 def test_bad_exports_fail_clearly(export_copy, damage, message):
     damage(export_copy)

@@ -238,6 +238,15 @@ def test_export_of_a_missing_or_damaged_checkpoint_is_refused(tiny_run, tmp_path
         err = capsys.readouterr().err
         assert f"{path} cannot be read as a Lightning checkpoint" in err and reason in err
         assert "weights_only" not in err and "Traceback" not in err  # not torch's advice to unpickle it unsafely
+    assert main(["export", str(tiny_run), "--out", str(tmp_path / "out")]) == 2
+    assert f"{tiny_run} is a directory (an export?), not a checkpoint" in capsys.readouterr().err
+    state = torch.load(tiny_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    state["state_dict"] = {name.replace("rssm.", "dynamics."): t for name, t in state["state_dict"].items()}
+    torch.save(state, tmp_path / "renamed.ckpt")  # an older layout's names
+    assert main(["export", str(tmp_path / "renamed.ckpt"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "renamed.ckpt: its weights do not fit its own world_model settings (Error(s) in loading" in err
+    assert "Traceback" not in err
     assert not (tmp_path / "out").exists()
 
 
