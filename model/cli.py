@@ -26,6 +26,7 @@ import torch
 
 USAGE = __doc__.split("\n\n")[1]
 LIGHTNING_COMMANDS = ("fit", "validate")
+PRECISIONS = ("32-true", "32", "16-mixed", "16", "bf16-mixed", "bf16")  # each with Lightning's other name for it
 
 
 def refuse_flat_sizes(args: list[str]) -> None:
@@ -76,6 +77,22 @@ def checkpoint_dir(root_dir: str | None) -> Path:
     return Path(root_dir or ".") / "checkpoints"
 
 
+def last_checkpoint(trainer_config) -> Path:
+    """Where a fit's last.ckpt is: in the directory its config's ModelCheckpoint names (`dirpath`), or in
+    checkpoint_dir(trainer.default_root_dir), where the fit puts it otherwise."""
+    for callback in trainer_config.get("callbacks") or []:
+        init_args = getattr(callback, "init_args", None)
+        dirpath = init_args.get("dirpath") if init_args is not None else None
+        if names_a_model_checkpoint(callback) and dirpath:
+            return Path(dirpath) / "last.ckpt"
+    return checkpoint_dir(trainer_config["default_root_dir"]) / "last.ckpt"
+
+
+def flat_settings(namespace) -> dict[str, object]:
+    """A jsonargparse Namespace's settings by dotted key (`world_model.deter`: 200, ...)."""
+    return {key: namespace[key] for key in namespace.keys() if not hasattr(namespace[key], "keys")}
+
+
 def names_a_model_checkpoint(callback: object) -> bool:
     """Whether a config's callback entry (a class_path and its init_args) is a ModelCheckpoint or a subclass of it."""
     from lightning.pytorch.callbacks import ModelCheckpoint
@@ -86,10 +103,11 @@ def names_a_model_checkpoint(callback: object) -> bool:
 
 def lightning_cli(args: list[str]):
     """Run a LightningCLI subcommand over PretrainModule and the shard DataModule; -> the LightningCLI. Ctrl-C during
-    a fit raises FitInterrupted, once ResumeNotice has said where to resume from."""
+    or SIGTERM during a fit raises FitInterrupted, once ResumeNotice has said where to resume from."""
     refuse_flat_sizes(args)
     from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
     from lightning.pytorch.cli import LightningCLI
+    from lightning.pytorch.plugins.io import TorchCheckpointIO
     from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
     from data_pipeline.datamodule import ShardDataModule
@@ -97,7 +115,7 @@ def lightning_cli(args: list[str]):
     from model.export import read_checkpoint
     from model.interrupt import FitInterrupted, ResumeNotice
     from model.module import ConfigError, PretrainModule, refuse_other_size
-    from model.last_checkpoint import LastStepCheckpoint
+    from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
     from model.progress import StepProgressBar
 
     notice = ResumeNotice()
@@ -113,7 +131,7 @@ def lightning_cli(args: list[str]):
             subcommand = self.config.get("subcommand") or ""
             config = self.config.get(subcommand, {})
             ckpt_path = config.get("ckpt_path") if config else None
-            last = checkpoint_dir(config["trainer"]["default_root_dir"]) / "last.ckpt" if config else None
+            last = last_checkpoint(config["trainer"]) if config else None
             if ckpt_path == "last":  # Lightning's word for the newest checkpoint: this run's, if it has one yet
                 ckpt_path = config["ckpt_path"] = str(last) if last.is_file() else None
                 rank_zero_only(print)(f"hauwm pretrain {subcommand}: --ckpt_path last: " + (
@@ -140,9 +158,19 @@ def lightning_cli(args: list[str]):
                     "under model.world_model), so this version cannot resume it; `hauwm pretrain export` still "
                     "exports it, or resume it with the hauwm version that wrote it"
                 )
-            compile_mode = config["model"]["compile"]
+            asked_model, asked_k_max = config["model"].clone(), config["data"]["k_max"]
             super()._parse_ckpt_path()
-            self.config[subcommand]["model"]["compile"] = compile_mode
+            resumed = self.config[subcommand]["model"]
+            changed = [f"model.{key} {value!r} (asked: {asked_model[key]!r})"
+                       for key, value in flat_settings(resumed).items()
+                       if key != "compile" and key in flat_settings(asked_model) and asked_model[key] != value]
+            if saved.get("k_max", asked_k_max) != asked_k_max:  # data.k_max sets model.k_max, also over the checkpoint's
+                changed.append(f"data.k_max {saved['k_max']!r} (asked: {asked_k_max!r})")
+            if subcommand == "fit" and changed:
+                raise ConfigError(f"{ckpt_path} was trained with {', '.join(changed[:3])}: a resume goes on with the "
+                                  "settings the fit began with (only model.compile may change); drop the change, or "
+                                  "start a new fit in another --trainer.default_root_dir")
+            resumed["compile"] = asked_model["compile"]  # how a step runs on this machine, not what it trains
 
         def before_instantiate_classes(self) -> None:
             config = self.config[self.subcommand]
@@ -169,6 +197,15 @@ def lightning_cli(args: list[str]):
                 print("hauwm pretrain: --trainer.enable_checkpointing false: the config's ModelCheckpoint is left "
                       "out, so this run writes no checkpoint and cannot be resumed", file=sys.stderr)
                 trainer.callbacks = [callback for callback in trainer.callbacks if callback not in checkpointers]
+            if str(trainer.precision) not in PRECISIONS:  # half-precision weights: the step's float32 state breaks
+                raise ConfigError(f"--trainer.precision {trainer.precision}: a fit runs in {', '.join(PRECISIONS[::2])} "
+                                  "(float32 weights, autocast for the rest; 16-mixed is the paper's)")
+            if trainer.accumulate_grad_batches != 1:  # Lightning refuses it under the step's manual optimisation
+                raise ConfigError(f"--trainer.accumulate_grad_batches {trainer.accumulate_grad_batches}: the step "
+                                  "optimises by itself (skipped steps, λ's dual step) and accumulates nothing: raise "
+                                  "--data.batch_size instead")
+            if trainer.gradient_clip_val is not None:
+                raise ConfigError("--trainer.gradient_clip_val: the step clips its own gradients: set --model.grad_clip")
             if str(trainer.precision) in ("16-mixed", "16") and no_cuda:
                 print("hauwm pretrain: float16 autocast needs a GPU; using bf16-mixed on CPU", file=sys.stderr)
                 trainer.precision = "bf16-mixed"
@@ -181,8 +218,12 @@ def lightning_cli(args: list[str]):
             for index, callback in enumerate(callbacks):  # Lightning's own default bar; a user's choice stays
                 if type(callback) in (RichProgressBar, TQDMProgressBar):
                     callbacks[index] = StepProgressBar()
+            # a fit stopped at max_steps, max_time or by SIGTERM resumes inside its epoch; before the notice, which
+            # names the checkpoint it wrote
+            callbacks.append(LastStepCheckpoint())
             callbacks.append(notice)  # with or without a progress bar
-            callbacks.append(LastStepCheckpoint())  # a fit stopped at max_steps resumes inside its epoch
+            if type(self.trainer.strategy.checkpoint_io) is TorchCheckpointIO:  # a user's own plugin stays
+                self.trainer.strategy.checkpoint_io = AtomicCheckpointIO()
 
     # `hauwm` passes its own argv on purpose; Lightning would warn that sys.argv differs
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
@@ -204,8 +245,8 @@ def lightning_cli(args: list[str]):
                            "description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video shards."},
         )
     except SystemExit:
-        if notice.interrupted:  # Lightning's sys.exit(1) after Ctrl-C
-            raise FitInterrupted from None
+        if notice.exit_code:  # Lightning's sys.exit(1) after Ctrl-C, or its SIGTERMException
+            raise FitInterrupted(notice.exit_code) from None
         raise
 
 
@@ -281,8 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ExportError, LoaderError, ShardDirError) as err:
         print(f"hauwm pretrain {command}: error: {err}", file=sys.stderr)
         return 2
-    except FitInterrupted:  # ResumeNotice has said where the fit can resume from
-        return 130
+    except FitInterrupted as stop:  # ResumeNotice has said where the fit can resume from
+        return stop.exit_code
     except SystemExit as done:  # --help, --print_config, or a flag the parser refused (it printed why)
         return done.code if isinstance(done.code, int) else 2
     print(f"hauwm pretrain: unknown command {command!r}\nusage:\n{USAGE}", file=sys.stderr)

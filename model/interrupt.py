@@ -1,10 +1,12 @@
-"""`ResumeNotice`: what `hauwm pretrain fit` says when it is stopped with Ctrl-C or by an error.
+"""`ResumeNotice`: what `hauwm pretrain fit` says when it is stopped with Ctrl-C, by SIGTERM or by an error.
 
 Lightning ends a fit on Ctrl-C with `sys.exit(1)`, without saving a checkpoint of its own, and says only "Detected
-KeyboardInterrupt, attempting graceful shutdown". This callback closes the progress bar (if there is one) and
-prints, on rank 0, the step reached and the checkpoint the fit can resume from; `interrupted` tells the CLI to
-raise FitInterrupted instead, which exits with 130, as the other stages do on Ctrl-C. A fit stopped by an error
-(a dead loader worker, a full disk) gets the same line before the error's own: which step, which checkpoint.
+KeyboardInterrupt, attempting graceful shutdown"; on SIGTERM it raises a SystemExit after the current batch
+(model/checkpointing.py writes last.ckpt there). This callback closes the progress bar (if there is one) and
+prints, on rank 0, the step reached and the checkpoint the fit can resume from; `exit_code` tells the CLI to
+raise FitInterrupted instead, which exits with 130 on Ctrl-C, as the other stages do, and 143 on SIGTERM (the
+shell's 128 + signal). A fit stopped by an error (a dead loader worker, a full disk) gets the same line before
+the error's own: which step, which checkpoint.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pathlib import Path
 import lightning
 import torch
 from lightning.pytorch.callbacks import Callback, TQDMProgressBar
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 
 def saved_step(checkpoint: Path) -> str:
@@ -28,16 +31,21 @@ def saved_step(checkpoint: Path) -> str:
 
 
 class FitInterrupted(Exception):
-    """A fit stopped with Ctrl-C, after ResumeNotice said where it can resume from."""
+    """A fit stopped with Ctrl-C or SIGTERM, after ResumeNotice said where it can resume from."""
+
+    def __init__(self, exit_code: int) -> None:
+        super().__init__(exit_code)
+        self.exit_code = exit_code
 
 
 class ResumeNotice(Callback):
     def __init__(self) -> None:
-        self.interrupted = False
+        self.exit_code: int | None = None  # 130 after Ctrl-C, 143 after SIGTERM
 
     def on_exception(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule,
                      exception: BaseException) -> None:
-        self.interrupted = isinstance(exception, KeyboardInterrupt)
+        self.exit_code = 130 if isinstance(exception, KeyboardInterrupt) else \
+            143 if isinstance(exception, SIGTERMException) else None
         if not trainer.is_global_zero:
             return
         bar = trainer.progress_bar_callback
@@ -49,5 +57,5 @@ class ResumeNotice(Callback):
         if last.is_file():
             written = time.strftime("%H:%M:%S", time.localtime(last.stat().st_mtime))
             where = f"resume with --ckpt_path {last} (step {saved_step(last)}, written {written})"
-        how = "interrupted" if self.interrupted else "stopped by the error below"
+        how = {130: "interrupted", 143: "terminated (SIGTERM)"}.get(self.exit_code, "stopped by the error below")
         print(f"hauwm pretrain fit: {how} at step {trainer.global_step}; {where}", file=sys.stderr)

@@ -22,7 +22,7 @@ from torch.utils.data import DataLoader
 from data_pipeline import SetEpoch, ShardDataModule
 from data_pipeline.loader import LoaderError, ResumableDataLoader, SequenceDataset, make_dataloader, shard_set
 from data_pipeline.shard_format import ShardDirError, decode_frames, read_samples
-from model.last_checkpoint import LastStepCheckpoint
+from model.checkpointing import LastStepCheckpoint
 
 
 def stored_clips(directory, split):
@@ -418,24 +418,39 @@ def test_resuming_mid_epoch_continues_the_data_stream_exactly(built_shards, tmp_
     assert resumed == uninterrupted[3 * stop_at:]
 
 
-@pytest.mark.parametrize("stop_at, limit", [(5, None), (6, None), (8, 4), (9, 4)])
-def test_the_last_checkpoint_of_a_fit_stopped_at_max_steps_resumes_exactly(built_shards, tmp_path, stop_at, limit):
-    """`--trainer.max_steps N`, then the same with a larger N and `--ckpt_path last`: the last.ckpt written when
-    the first fit stopped (LastStepCheckpoint: at its last step, not at Lightning's train end, which counts the
-    cut-short epoch as done) continues the data stream exactly; also where limit_train_batches ends every epoch
-    early (the loader's state says the epoch ended, though fewer than len(loader) batches were read)."""
+class StopAt(lightning.Callback):
+    """Asks the fit to stop after optimizer step `step`, as `trainer.max_time`'s Timer does when time is up."""
 
-    def run(max_steps: int, root, ckpt_path=None) -> list[str]:
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def on_train_batch_end(self, trainer: lightning.Trainer, *_) -> None:
+        if trainer.global_step >= self.step:
+            trainer.should_stop = True
+
+
+@pytest.mark.parametrize("stop_at, limit, how", [(5, None, "max_steps"), (6, None, "max_steps"), (8, 4, "max_steps"),
+                                                 (9, 4, "max_steps"), (5, None, "should_stop")])
+def test_the_last_checkpoint_of_a_stopped_fit_resumes_exactly(built_shards, tmp_path, stop_at, limit, how):
+    """`--trainer.max_steps N` (or a fit told to stop at step N, as by `--trainer.max_time`), then the same with a
+    larger N and `--ckpt_path last`: the last.ckpt written when the first fit stopped (LastStepCheckpoint: at its
+    last step, not at Lightning's train end, which counts the cut-short epoch as done) continues the data stream
+    exactly; also where limit_train_batches ends every epoch early (the loader's state says the epoch ended,
+    though fewer than len(loader) batches were read)."""
+
+    def run(max_steps: int, root, ckpt_path=None, stop: int | None = None) -> list[str]:
         data = ShardDataModule(str(built_shards), batch_size=3, seq_len=8, num_workers=2, val_batches=2, seed=3)
         model = RecordingModel()
         checkpoint = lightning.pytorch.callbacks.ModelCheckpoint(dirpath=root, save_last=True, every_n_train_steps=100)
         trainer = lightning.Trainer(max_steps=max_steps, accelerator="cpu", devices=1, logger=False,
-                                    callbacks=[SetEpoch(), checkpoint, LastStepCheckpoint()], enable_progress_bar=False,
+                                    callbacks=[SetEpoch(), *([StopAt(stop)] if stop else []), checkpoint,
+                                               LastStepCheckpoint()], enable_progress_bar=False,
                                     limit_val_batches=0, num_sanity_val_steps=0, enable_model_summary=False,
                                     limit_train_batches=limit)
         trainer.fit(model, datamodule=data, ckpt_path=ckpt_path)
         return [clip for epoch in sorted(model.train_ids) for clip in model.train_ids[epoch]]
 
     uninterrupted = run(14, tmp_path / "full")
-    assert run(stop_at, tmp_path / "first") == uninterrupted[: 3 * stop_at]
+    first = run(stop_at, tmp_path / "first") if how == "max_steps" else run(14, tmp_path / "first", stop=stop_at)
+    assert first == uninterrupted[: 3 * stop_at]
     assert run(14, tmp_path / "resumed", ckpt_path=tmp_path / "first" / "last.ckpt") == uninterrupted[3 * stop_at:]

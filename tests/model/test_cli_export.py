@@ -152,6 +152,9 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--data.seq_len", "1"], "--data.seq_len must be at least 2"),
         (["--model.lr", "-1"], "model.lr must be positive"),
         (["--trainer.max_steps", "1", "--data.shards", "/nonexistent/shards"], "/nonexistent/shards does not exist"),
+        (["--trainer.precision", "bf16-true"], "--trainer.precision bf16-true: a fit runs in 32-true, 16-mixed, bf16-mixed"),
+        (["--trainer.accumulate_grad_batches", "2"], "accumulate_grad_batches 2: the step optimises by itself"),
+        (["--trainer.gradient_clip_val", "1"], "the step clips its own gradients: set --model.grad_clip"),
     ],
 )
 def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, capsys, flags, message):
@@ -174,11 +177,11 @@ def test_a_checkpoint_of_another_model_size_is_refused(built_shards, tiny_run, t
 
 
 def test_a_resume_keeps_this_runs_compile_setting(built_shards, tiny_run, tmp_path):
-    """The checkpoint's settings replace the command line's on resume, except model.compile (how the step runs)."""
+    """A resume goes on with the checkpoint's settings, except model.compile (how the step runs), which may change."""
     checkpoint = tiny_run / "checkpoints" / "last.ckpt"
     assert torch.load(checkpoint, weights_only=True)["hyper_parameters"]["compile"] == "off"
     # max_steps already reached: the resumed fit ends at once, after writing its resolved config.yaml
-    assert fit(built_shards, tmp_path, "--model.compile", "default", "--model.lr", "0.5", "--ckpt_path", str(checkpoint),
+    assert fit(built_shards, tmp_path, "--model.compile", "default", "--ckpt_path", str(checkpoint),
                "--trainer.max_steps", str(RUN_STEPS)) == 0
     config = yaml.safe_load(next((tmp_path / "lightning_logs").glob("version_*/config.yaml")).read_text())
     assert config["model"]["compile"] == "default" and config["model"]["lr"] == 1e-3
@@ -194,6 +197,32 @@ def test_ckpt_path_last_resumes_the_runs_newest_checkpoint_or_starts_afresh(buil
     assert fit(built_shards, tmp_path / "fresh", "--ckpt_path", "last", "--trainer.max_steps", "1") == 0
     assert f"--ckpt_path last: no {tmp_path / 'fresh' / 'checkpoints' / 'last.ckpt'} yet, starting at step 0" in \
         capsys.readouterr().err
+
+
+def test_a_resume_that_changes_a_model_setting_is_refused(built_shards, tiny_run, tmp_path, capsys):
+    shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
+    for flags, said in ((["--model.lr", "0.5"], "model.lr 0.001 (asked: 0.5)"),
+                        (["--data.k_max", "3"], "data.k_max 5 (asked: 3)")):
+        assert fit(built_shards, tmp_path, "--ckpt_path", "last", "--trainer.max_steps", str(RUN_STEPS + 2), *flags) == 2
+        err = capsys.readouterr().err
+        assert f"last.ckpt was trained with {said}: a resume goes on with the settings the fit began with" in err
+    assert (tmp_path / "checkpoints" / "last.ckpt").read_bytes() == (tiny_run / "checkpoints" / "last.ckpt").read_bytes()
+
+
+def test_ckpt_path_last_reads_the_directory_the_configs_model_checkpoint_names(built_shards, tmp_path, capsys):
+    elsewhere = tmp_path / "shared" / "ckpts"
+    overlay = tmp_path / "dirpath.yaml"
+    overlay.write_text(yaml.safe_dump({"trainer": {"callbacks": [
+        {"class_path": "data_pipeline.SetEpoch"},
+        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
+         "init_args": {"dirpath": str(elsewhere), "save_last": True, "enable_version_counter": False}}]}}))
+    assert fit(built_shards, tmp_path / "run", "--config", str(overlay), "--trainer.max_steps", "2", "--ckpt_path",
+               "last") == 0
+    assert f"no {elsewhere / 'last.ckpt'} yet, starting at step 0" in capsys.readouterr().err
+    assert fit(built_shards, tmp_path / "run", "--config", str(overlay), "--trainer.max_steps", "3", "--ckpt_path",
+               "last") == 0
+    assert f"--ckpt_path last: resuming from {elsewhere / 'last.ckpt'}" in capsys.readouterr().err
+    assert torch.load(elsewhere / "last.ckpt", weights_only=False)["global_step"] == 3
 
 
 def test_a_fresh_fit_where_an_earlier_fit_left_last_ckpt_is_refused(built_shards, tiny_run, tmp_path, capsys):

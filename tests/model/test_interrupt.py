@@ -1,8 +1,12 @@
 """Ctrl-C during `hauwm pretrain fit`: Lightning stops the fit with sys.exit(1) and no checkpoint of its own; the
 last line names the step reached and the checkpoint to resume from, with or without a progress bar, and the
-command exits with 130."""
+command exits with 130. SIGTERM (a cluster's preemption): the fit writes last.ckpt at the step it stopped at and
+exits with 143. Checkpoints are written whole even where $TMPDIR is another filesystem."""
 
 from __future__ import annotations
+
+import os
+import signal
 
 import lightning
 import pytest
@@ -32,6 +36,14 @@ class DeadWorker(lightning.Callback):
             raise LoaderError("DataLoader worker 0 (train split, pid 1) died while reading shard x.tar: killed")
 
 
+class Sigterm(lightning.Callback):
+    """SIGTERM to this process during optimizer step 3 (as the Trainer's callback `test_interrupt.Sigterm`)."""
+
+    def on_train_batch_start(self, trainer: lightning.Trainer, *_) -> None:
+        if trainer.global_step == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
 @pytest.mark.parametrize("bar", [True, False], ids=["bar", "no-bar"])
 def test_ctrl_c_names_the_checkpoint_to_resume_from(tmp_path, capsys, bar):
     checkpoints = lightning.pytorch.callbacks.ModelCheckpoint(tmp_path / "checkpoints", save_last=True,
@@ -42,7 +54,7 @@ def test_ctrl_c_names_the_checkpoint_to_resume_from(tmp_path, capsys, bar):
                                 + ([StepProgressBar()] if bar else []))
     with pytest.raises(SystemExit):
         trainer.fit(Regression())
-    assert notice.interrupted
+    assert notice.exit_code == 130
     last = tmp_path / "checkpoints" / "last.ckpt"
     assert f"hauwm pretrain fit: interrupted at step 3; resume with --ckpt_path {last} (step 2, written " in \
         capsys.readouterr().err
@@ -59,3 +71,28 @@ def test_a_fit_stopped_by_an_error_says_its_step_before_the_error(built_shards, 
     lines = capsys.readouterr().err.rstrip().splitlines()
     assert lines[-2].endswith("hauwm pretrain fit: stopped by the error below at step 3; no checkpoint was written yet")
     assert lines[-1].startswith("hauwm pretrain fit: error: DataLoader worker 0 (train split, pid 1) died")
+
+
+def test_sigterm_writes_the_checkpoint_of_the_step_it_stops_at_and_exits_143(built_shards, tmp_path, capsys):
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.callbacks+=test_interrupt.Sigterm") == 143
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    assert f"terminated (SIGTERM) at step 4; resume with --ckpt_path {last} (step 4, written " in capsys.readouterr().err
+    assert torch.load(last, weights_only=False)["global_step"] == 4
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "6", "--ckpt_path", "last") == 0  # and it resumes
+
+
+def test_a_checkpoint_is_written_whole_beside_the_old_one_then_renamed(tmp_path, monkeypatch):
+    from model.checkpointing import AtomicCheckpointIO
+
+    path = tmp_path / "checkpoints" / "last.ckpt"
+    AtomicCheckpointIO().save_checkpoint({"global_step": 1}, path)
+    seen = []
+
+    def replace(source, target):  # the moment before the new checkpoint takes the old one's name
+        seen.append((os.path.dirname(source), torch.load(target, weights_only=False)["global_step"]))
+        os.rename(source, target)
+
+    monkeypatch.setattr(os, "replace", replace)
+    AtomicCheckpointIO().save_checkpoint({"global_step": 2}, path)
+    assert seen == [(str(path.parent), 1)]  # written in the checkpoint's own directory; the old one whole till then
+    assert torch.load(path, weights_only=False)["global_step"] == 2 and os.listdir(path.parent) == ["last.ckpt"]
