@@ -112,7 +112,7 @@ def lightning_cli(args: list[str]):
 
     from data_pipeline.datamodule import ShardDataModule
     from model.config import WorldModelConfig
-    from model.export import read_checkpoint
+    from model.export import checkpoint_world_model, read_checkpoint
     from model.interrupt import FitInterrupted, ResumeNotice
     from model.module import ConfigError, PretrainModule, refuse_other_size
     from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
@@ -142,7 +142,8 @@ def lightning_cli(args: list[str]):
                                   "--ckpt_path last, or start afresh with another --trainer.default_root_dir")
             if not (ckpt_path and Path(ckpt_path).is_file()):
                 return super()._parse_ckpt_path()
-            checkpoint = read_checkpoint(ckpt_path)[0]
+            checkpoint, saved_sizes = read_checkpoint(ckpt_path)
+            checkpoint_world_model(checkpoint, saved_sizes, Path(ckpt_path))  # weights of another layout: refused
             max_steps = config["trainer"]["max_steps"]
             step = checkpoint.get("global_step", 0)
             if subcommand == "fit" and 0 <= max_steps <= step:

@@ -168,11 +168,9 @@ def read_checkpoint(checkpoint: str | Path) -> tuple[dict[str, Any], WorldModelC
     return state, config
 
 
-def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dict[str, Any]]:
-    """The WorldModel inside a `hauwm pretrain fit` checkpoint and its provenance."""
-    path = Path(checkpoint)
-    state, config = read_checkpoint(path)
-    hparams = state["hyper_parameters"]
+def checkpoint_world_model(state: dict[str, Any], config: WorldModelConfig, path: Path) -> WorldModel:
+    """The WorldModel of a checkpoint read by read_checkpoint; an ExportError naming the file if its weights are not
+    those of its own world_model settings (another version's layout)."""
     model = WorldModel(config)
     prefix = "world_model."
     try:
@@ -182,6 +180,15 @@ def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dic
         detail = " ".join(str(err).split())[:300]
         raise ExportError(f"{path}: its weights do not fit its own world_model settings ({detail}); use a checkpoint "
                           "written by `hauwm pretrain fit` of this version") from None
+    return model
+
+
+def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dict[str, Any]]:
+    """The WorldModel inside a `hauwm pretrain fit` checkpoint and its provenance."""
+    path = Path(checkpoint)
+    state, config = read_checkpoint(path)
+    hparams = state["hyper_parameters"]
+    model = checkpoint_world_model(state, config, path)
     log_lambda = state["state_dict"].get("log_lambda")
     provenance = {
         "checkpoint": str(path.resolve()),

@@ -255,7 +255,7 @@ def test_an_export_is_not_replaced_without_overwrite(tiny_run, tiny_export, tmp_
         "weights.safetensors": 0o644, "config.json": 0o644}
 
 
-def test_export_of_a_missing_or_damaged_checkpoint_is_refused(tiny_run, tmp_path, capsys):
+def test_export_of_a_missing_or_damaged_checkpoint_is_refused(built_shards, tiny_run, tmp_path, capsys):
     assert main(["export", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "out")]) == 2
     assert "none.ckpt not found" in capsys.readouterr().err
     truncated = tmp_path / "truncated.ckpt"
@@ -276,6 +276,8 @@ def test_export_of_a_missing_or_damaged_checkpoint_is_refused(tiny_run, tmp_path
     err = capsys.readouterr().err
     assert "renamed.ckpt: its weights do not fit its own world_model settings (Error(s) in loading" in err
     assert "Traceback" not in err
+    assert fit(built_shards, tmp_path / "run", "--ckpt_path", str(tmp_path / "renamed.ckpt")) == 2  # nor resumed
+    assert "renamed.ckpt: its weights do not fit its own world_model settings" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 
