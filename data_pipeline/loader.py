@@ -188,7 +188,7 @@ class SequenceDataset(IterableDataset):
         if not usable:
             longest = max((frames for counts in shards.frame_counts for frames in counts), default=0)
             raise LoaderError(f"split {shards.split!r} has no clip of at least seq_len={seq_len} frames (the longest "
-                              f"has {longest}): lower seq_len")
+                              f"has {longest}): lower seq_len (--data.seq_len of a fit, --seq-len of analyze)")
         if len(usable) < streams:
             fewer = (["fewer workers (--data.num_workers)"] if self.workers > 1 else []) + (
                 ["fewer devices (--trainer.devices)"] if world_size > 1 else [])
@@ -200,8 +200,8 @@ class SequenceDataset(IterableDataset):
         clips = sum(n for _, n in usable)
         self.batches_per_worker = batches_per_worker or clips // (streams * batch_size)
         if self.batches_per_worker < 1:
-            raise LoaderError(f"split {shards.split!r} has {clips} clips of at least {seq_len} frames, fewer than "
-                              f"one batch of {batch_size} for each of {streams} ranks × workers; lower batch_size")
+            raise LoaderError(f"split {shards.split!r} has {clips} clips of at least {seq_len} frames, fewer than one "
+                              f"batch of {batch_size} for each of {streams} ranks × workers; lower --data.batch_size")
         self.urls = [url for url, _ in usable]
         self.eligible = dict(usable)  # url -> its clips of at least seq_len frames, as the manifest counts them
         self.batch_size, self.seq_len, self.k_max = batch_size, seq_len, k_max

@@ -37,14 +37,15 @@ CONFIG_DIRS = {"online": "configs/finetune", "offline": "configs/offline", "imit
 def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
     """The arguments of `hauwm finetune` (online RL) or of its `offline` / `imitate` subcommand."""
     prog = "hauwm finetune" + (f" {subcommand}" if subcommand else "")
-    unit, _ = step_unit(SUBCOMMANDS[subcommand][0] if subcommand else "online")
+    paradigm = SUBCOMMANDS[subcommand][0] if subcommand else "online"
+    unit, _ = step_unit(paradigm)
     description = __doc__
     if subcommand is not None:  # its line of the module's overview: what it does, its example, where to read on
         example = "\n".join(line for line in __doc__.splitlines() if f"hauwm finetune {subcommand} " in line)
         description = (f"{SUBCOMMANDS[subcommand][3]} (docs/downstream.md)\n\n{example}\n\n--steps counts {unit}s; "
                        "running again with the same --logdir resumes from its checkpoint.")
     p = argparse.ArgumentParser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", required=True, help="YAML settings, e.g. configs/finetune/dmc_cheetah_run.yaml")
+    p.add_argument("--config", required=True, help=f"YAML settings, e.g. {CONFIG_DIRS[paradigm]}/dmc_cheetah_run.yaml")
     p.add_argument("--pretrained", help="directory written by `hauwm pretrain export` (weights.safetensors + "
                                         "config.json); not needed with agent=scratch")
     if subcommand is not None:

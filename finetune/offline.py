@@ -85,7 +85,11 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
             bar.set_postfix(model_loss=f"{metrics['model_loss']:.1f}", u=f"{metrics['penalty_u_imagined']:.3g}")
             counters["next_log"] = next_multiple(updates, cfg.log_every)
         if updates >= counters["next_eval"] or updates >= cfg.steps:
-            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=cfg.seed + 10_000 + updates)
+            started = time.perf_counter()
+            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=cfg.seed + 10_000 + updates,
+                                 progress=progress)
+            window["time"] += time.perf_counter() - started  # updates/s counts updates, not the evaluation
+            bar.unpause()  # and so does the bar's rate
             logger.write("eval", updates, last_eval)
             keep_best(Path(cfg.logdir), agent, cfg, counters, fingerprint, last_eval, updates)
             bar.write(f"eval at {updates} updates: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))

@@ -445,6 +445,9 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
                 "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
     agent, fingerprint, counters = start_run(cfg, pretrained, hooks.agent_class, action_dim, counters, rng)
+    if cfg.steps <= cfg.prefill:
+        print(f"note: steps {cfg.steps} end within the prefill of {cfg.prefill} env steps of random actions: this run "
+              "collects episodes and evaluates the untrained agent, but makes no update", file=sys.stderr)
 
     # a resumed run reseeds from its progress, so it does not replay the same random streams; with hooks.reseed
     # each episode is seeded from its index instead, in the envs of a fresh run. Env i of num_envs gets its own
@@ -547,7 +550,10 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
             train_due()  # evaluations and checkpoints see every update due so far, also with parallel envs
         if eval_due:
             eval_seed = cfg.seed + 10_000 + counters["env_step"] if reseed else None
-            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=eval_seed)
+            started = time.perf_counter()
+            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=eval_seed, progress=progress)
+            window["time"] += time.perf_counter() - started  # updates/s counts acting and updates, not evaluation
+            bar.unpause()  # and so does the bar's rate
             logger.write("eval", counters["env_step"], last_eval)
             keep_best(checkpoint.parent, agent, cfg, counters, fingerprint, last_eval, counters["env_step"])
             bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))

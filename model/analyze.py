@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -130,8 +131,12 @@ def analyze(
 ) -> list[Path]:
     loaded = [load_frozen(path) for path in models]
     k_max = k_max or loaded[0].export_config.get("provenance", {}).get("k_max") or 5
-    dataset = SequenceDataset(shard_set(shards, split), batch_size=batch_size, seq_len=seq_len, k_max=k_max,
+    held_out_shards = shard_set(shards, split)
+    dataset = SequenceDataset(held_out_shards, batch_size=batch_size, seq_len=seq_len, k_max=k_max,
                               num_workers=0, shuffle=False, seed=seed, batches_per_worker=batches)
+    if (clips := sum(held_out_shards.eligible(seq_len))) < batches * batch_size:
+        print(f"note: {batches} batches of {batch_size} from {clips} {split} clips of at least {seq_len} frames: clips "
+              "repeat, with other gaps", file=sys.stderr)
     held_out = list(tqdm(dataset, total=batches, desc=f"reading {split} batches", unit="batch"))
     out.mkdir(parents=True, exist_ok=True)
     results, written = [], []

@@ -194,7 +194,10 @@ def lightning_cli(args: list[str]):
                 raise ConfigError("trainer.devices -1 means every GPU, and this run is on the CPU: pass --trainer.devices "
                                   "1 (or N processes)")
             checkpointers = [callback for callback in trainer.callbacks or [] if names_a_model_checkpoint(callback)]
-            if trainer.enable_checkpointing is False and checkpointers:  # Lightning would refuse the pair
+            if self.subcommand == "validate":  # writes no checkpoint; restoring one into it only warns of its dirpath
+                trainer.enable_checkpointing = False
+                trainer.callbacks = [callback for callback in trainer.callbacks or [] if callback not in checkpointers]
+            elif trainer.enable_checkpointing is False and checkpointers:  # Lightning would refuse the pair
                 print("hauwm pretrain: --trainer.enable_checkpointing false: the config's ModelCheckpoint is left "
                       "out, so this run writes no checkpoint and cannot be resumed", file=sys.stderr)
                 trainer.callbacks = [callback for callback in trainer.callbacks if callback not in checkpointers]
@@ -280,11 +283,11 @@ def analyze_command(argv: list[str]) -> int:
     parser.add_argument("--shards", type=Path, required=True, help="shard directory with a validation split")
     parser.add_argument("--out", type=Path, required=True, help="directory for the PNG plots and figures.json")
     parser.add_argument("--split", default="validation", help="the shards' split to evaluate on (default validation)")
-    parser.add_argument("--batches", type=int, default=8, help="held-out batches to average over")
+    parser.add_argument("--batches", type=int, default=8, help="held-out batches to average over (default 8)")
     parser.add_argument("--batch-size", type=int, default=8, help="sequences per batch (default 8)")
     parser.add_argument("--seq-len", type=int, default=12, help="frames per sampled sequence (default 12)")
     parser.add_argument("--k-max", type=int, default=None, help="largest gap k (default: the first model's training K_max)")
-    parser.add_argument("--heads", type=int, default=4, help="ensemble heads shown side by side in the rollout figure")
+    parser.add_argument("--heads", type=int, default=4, help="ensemble heads shown side by side in the rollout figure (default 4)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sampled sequences and gaps (default 0)")
     args = parser.parse_args(argv)
     for flag, value, least in (("--batches", args.batches, 1), ("--heads", args.heads, 1), ("--batch-size", args.batch_size, 1),

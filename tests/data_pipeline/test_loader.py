@@ -260,7 +260,7 @@ def test_too_few_shards_or_clips_give_clear_errors(built_shards, monkeypatch):
                                           "--clips-per-shard, or use fewer devices .--trainer.devices.$"):
         SequenceDataset(shards, batch_size=2, seq_len=8, num_workers=1)
     as_stream(monkeypatch, 0, 1, 0, 1)
-    with pytest.raises(LoaderError, match="lower batch_size"):
+    with pytest.raises(LoaderError, match="lower --data.batch_size"):
         SequenceDataset(shards, batch_size=64, seq_len=8)
     assert sum(shards.eligible(61)) == 0  # clips have at most 60 frames: too short for L = 61, skipped
     with pytest.raises(LoaderError, match="no clip of at least seq_len=61 frames .the longest has 60.: lower seq_len"):

@@ -192,3 +192,10 @@ def test_each_suite_completes_a_short_run(export_dir, tiny_config, tmp_path, tas
     assert (tmp_path / task / CHECKPOINT).exists()
     assert rows(tmp_path / task / "train.csv")
     assert torch.load(tmp_path / task / CHECKPOINT, weights_only=True)["counters"]["env_step"] == steps
+
+
+def test_a_budget_within_the_prefill_says_it_makes_no_update(export_dir, tmp_path, capsys):
+    settings = tiny_run_settings(tmp_path / "run", time_limit=10, prefill=20, eval_episodes=1)
+    assert main(["--config", "configs/finetune/demo.yaml", "--steps", "20", "--pretrained", str(export_dir)] + settings) == 0
+    assert "note: steps 20 end within the prefill of 20 env steps of random actions" in capsys.readouterr().err
+    assert rows(tmp_path / "run" / "eval.csv") and not (tmp_path / "run" / "train.csv").exists()

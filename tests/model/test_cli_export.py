@@ -19,7 +19,7 @@ from model.export import ExportError, FrozenWorldModel, load_frozen
 from model.module import PretrainModule
 from model.rssm import RSSMState
 
-from conftest import RUN_STEPS, TINY_SIZES, fit, make_batch  # noqa: I001 (tests/model/conftest.py)
+from conftest import RUN_ARGS, RUN_STEPS, TINY_CONFIG, TINY_SIZES, fit, make_batch  # noqa: I001 (tests/model/conftest.py)
 
 
 def scalars(run, tag: str) -> list[float]:
@@ -380,3 +380,12 @@ def test_a_fit_prints_lightnings_messages_but_not_its_cloud_logger_advert(built_
         logging.getLogger("lightning.pytorch").removeHandler(handler)
     assert any("GPU available" in message for message in messages)  # Lightning's own start-up lines still print
     assert not any("litlogger" in message for message in messages)
+
+
+def test_validate_scores_a_checkpoint_and_writes_no_checkpoint(built_shards, tiny_run, tmp_path, capsys, recwarn):
+    checkpoint = tiny_run / "checkpoints" / "last.ckpt"
+    assert main(["validate", "--config", str(TINY_CONFIG), "--data.shards", str(built_shards), "--trainer.default_root_dir",
+                 str(tmp_path), *RUN_ARGS, "--ckpt_path", str(checkpoint)]) == 0
+    assert "val/loss" in capsys.readouterr().out
+    assert not (tmp_path / "checkpoints").exists() and list((tmp_path / "lightning_logs").glob("version_0"))
+    assert not [w for w in recwarn if "dirpath has changed" in str(w.message)]
