@@ -316,7 +316,7 @@ class WorkerPids(lightning.Callback):
 
 
 class RecordingModel(lightning.LightningModule):
-    """Records the clip ids of every batch; learns nothing."""
+    """Records every training sequence as (clip id, frame indices), and the validation batches; learns nothing."""
 
     def __init__(self):
         super().__init__()
@@ -324,7 +324,7 @@ class RecordingModel(lightning.LightningModule):
         self.train_ids, self.val_batches = {}, []
 
     def training_step(self, batch, batch_index):
-        self.train_ids.setdefault(self.current_epoch, []).extend(batch["id"])
+        self.train_ids.setdefault(self.current_epoch, []).extend(zip(batch["id"], map(tuple, batch["indices"].tolist())))
         return (self.weight * batch["frames"].float().mean()).sum()
 
     def validation_step(self, batch, batch_index):

@@ -59,6 +59,39 @@ def test_the_gradient_penalty_is_taken_on_the_input():
     assert metrics["disc_penalty"] == pytest.approx(16.0, rel=1e-4)
 
 
+def test_the_gradient_penalty_is_taken_at_random_interpolates_of_expert_and_policy_pairs():
+    torch.manual_seed(0)
+    disc = Discriminator(feat_dim=4, action_dim=2, units=16)
+    expert, policy = (torch.randn(32, 4) + 2, torch.rand(32, 2)), (torch.randn(48, 4) - 2, torch.rand(48, 2))
+    x_e, x_p = torch.cat(expert, -1), torch.cat(policy, -1)
+
+    def penalty_at(points: torch.Tensor) -> float:
+        points = points.clone().requires_grad_(True)
+        grad = torch.autograd.grad(disc.net(points).sum(), points)[0]
+        return (grad.norm(dim=-1) - 1).pow(2).mean().item()
+
+    torch.manual_seed(1)  # the draws update makes next: one policy pair per expert pair, then α ~ U(0, 1)
+    pick, alpha = torch.randint(48, (32,)), torch.rand(32, 1)
+    at_interpolates, at_experts = penalty_at(alpha * x_e + (1 - alpha) * x_p[pick]), penalty_at(x_e)
+    torch.manual_seed(1)
+    assert disc.update(*expert, *policy)["disc_penalty"].item() == pytest.approx(at_interpolates, rel=1e-5)
+    assert abs(at_interpolates - at_experts) > 1e-3 * at_interpolates  # the test could tell the two apart
+
+
+def test_the_gradient_penalty_enters_the_discriminators_gradient_in_proportion_to_its_scale():
+    """L_D = bce + c · penalty: D's parameter gradient is linear in c, and the penalty's part is not zero."""
+    data = (torch.randn(16, 4) + 1, torch.rand(16, 2), torch.randn(16, 4) - 1, torch.rand(16, 2))
+    gradients = {}
+    for scale in (0.0, 1.0, 10.0):
+        torch.manual_seed(0)
+        disc = Discriminator(feat_dim=4, action_dim=2, units=8, gp_scale=scale, grad_clip=1e9)
+        disc.update(*data)  # the same initial weights and draws for every scale
+        gradients[scale] = torch.cat([p.grad.flatten() for p in disc.net.parameters()])
+    penalty_part = gradients[1.0] - gradients[0.0]
+    assert penalty_part.abs().max() > 1e-6
+    torch.testing.assert_close(gradients[10.0] - gradients[0.0], 10 * penalty_part, rtol=1e-4, atol=1e-6)
+
+
 def imitation_config(tiny_config, logdir, steps, **extra):
     values = dict(paradigm="imitation", task="metaworld_drawer_close", demos="test/two-demos-v0", action_repeat=1,
                   time_limit=8, fast_render=True, steps=steps, prefill=8, train_every=4, eval_every=16,

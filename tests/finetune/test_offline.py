@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
 
 from finetune.config import ConfigError
 from finetune.offline import OfflineAgent, train_offline
-from finetune.penalty import uncertainty
+from finetune.penalty import PenalisedReward, uncertainty
+from model.losses import disagreement
 from finetune.train import BEST, CHECKPOINT, FinetuneError, load_trained
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
@@ -47,10 +50,25 @@ def test_every_penalty_has_a_gradient_to_the_heads_means_except_max_std():
         assert (grad is not None and grad.abs().sum() > 0) == (kind != "max_std"), kind
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_imagined_reward_is_the_model_reward_minus_scale_times_u(kind):
+    """Eq. 6: r̃ = R(s̃_{t+1}) − λ · (u + w · frozen disagreement), on one imagination's rollout."""
+    mean, std, sample = heads(0.5, 0.3, m=4, n=6)  # [M, N, S]: M heads, N = H · batch imagined steps
+    rollout = SimpleNamespace(new_feats=torch.randn(3, 2, 5), prior_mean=mean.view(4, 3, 2, 6).transpose(0, 1),
+                              prior_std=std.view(4, 3, 2, 6).transpose(0, 1), new_stoch=sample.view(3, 2, 6),
+                              frozen_means=torch.randn(3, 5, 2, 7))  # [H, M', N, S']
+    world_model = SimpleNamespace(predicted_reward=lambda feats: feats.sum(-1))  # [H, N]
+    u = uncertainty(kind, mean, std, sample).view(3, 2)
+    frozen = disagreement(rollout.frozen_means.transpose(0, 1))
+    for scale, weight in ((0.0, 0.0), (5.0, 0.0), (5.0, 2.0)):
+        reward = PenalisedReward(world_model, kind, scale, weight)(rollout)
+        torch.testing.assert_close(reward, rollout.new_feats.sum(-1) - scale * (u + weight * frozen))
+
+
 def offline_config(tiny_config, logdir, steps, **extra):
     values = dict(paradigm="offline", task="metaworld_drawer_close", dataset="test/two-episodes-v0", action_repeat=1,
                   model_heads=3, horizon=3, time_limit=6, fast_render=True, steps=steps, eval_every=2,
-                  eval_episodes=1, log_every=1, checkpoint_every=2, logdir=str(logdir))
+                  eval_episodes=1, log_every=1, checkpoint_every=2, penalty_scale=2.5, logdir=str(logdir))
     values.update(extra)
     return tiny_config(**values)
 
@@ -82,7 +100,7 @@ def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir,
 
     cfg, agent, counters = load_trained(tmp_path / "whole", export_dir, action_dim=4)  # what benches evaluate
     assert isinstance(agent, OfflineAgent) and not agent.training and counters == first["counters"]
-    assert cfg.penalty_scale == offline_config(tiny_config, tmp_path, 4).penalty_scale
+    assert cfg.penalty_scale == 2.5  # the run's own, not the default 5
     assert all(torch.equal(value, agent.trainable_state_dict()[key]) for key, value in first["agent"].items())
     with pytest.raises(FinetuneError, match="holds no config.yaml"):
         load_trained(tmp_path / "nothing", export_dir, action_dim=4)

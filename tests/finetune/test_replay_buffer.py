@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.stats import chisquare
 
 from finetune.replay import Replay, ReplayError
 
@@ -35,6 +36,18 @@ def test_windows_stay_inside_one_episode_and_keep_alignment(tmp_path):
     later = step > 0
     assert (batch["reward"][later] == (ep * 1000 + step)[later]).all()
     assert (batch["action"][..., 1][later] == step[later]).all()
+
+
+def test_every_window_start_is_drawn_uniformly_up_to_the_last_that_fits():
+    replay = Replay(None, capacity=10_000, rng=np.random.default_rng(0))
+    replay.add(episode(1, 9))  # 10 entries: a window of 10 has one start, 0
+    assert replay.ready(10) and (replay.sample(4, 10)["obs"][:, 0, 0, 0, 1] == 0).all()
+    replay.add(episode(2, 14))  # 15 entries: starts 0..5
+    batch = replay.sample(batch_size=7_000, length=10)
+    ep, start = batch["obs"][:, 0, 0, 0, 0].astype(int), batch["obs"][:, 0, 0, 0, 1].astype(int)
+    counts = {(e, s): n for (e, s), n in zip(*np.unique(np.stack([ep, start], 1), axis=0, return_counts=True))}
+    assert set(counts) == {(1, 0)} | {(2, s) for s in range(6)}  # the last start of each episode too
+    assert chisquare(list(counts.values())).pvalue > 1e-3  # 7 starts, each as likely
 
 
 def test_capacity_drops_the_oldest_episodes_and_disk_reload_keeps_the_newest(tmp_path):

@@ -79,6 +79,10 @@ def test_sigterm_writes_the_checkpoint_of_the_step_it_stops_at_and_exits_143(bui
     assert f"terminated (SIGTERM) at step 4; resume with --ckpt_path {last} (step 4, written " in capsys.readouterr().err
     assert torch.load(last, weights_only=False)["global_step"] == 4
     assert fit(built_shards, tmp_path, "--trainer.max_steps", "6", "--ckpt_path", "last") == 0  # and it resumes
+    assert fit(built_shards, tmp_path / "unbroken", "--trainer.max_steps", "6") == 0  # as a fit never stopped
+    resumed, unbroken = (torch.load(root / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
+                         for root in (tmp_path, tmp_path / "unbroken"))
+    assert resumed.keys() == unbroken.keys() and all(torch.equal(resumed[key], unbroken[key]) for key in resumed)
 
 
 def test_a_checkpoint_is_written_whole_beside_the_old_one_then_renamed(tmp_path, monkeypatch):

@@ -14,6 +14,7 @@ from lightning.pytorch.plugins import MixedPrecision
 from torch.utils.data import DataLoader
 
 from model.config import WorldModelConfig
+from model.losses import k_scaled_disagreement
 from model.module import ConfigError, PretrainModule
 
 
@@ -50,13 +51,53 @@ def test_lambda_starts_at_lambda_init(small_sizes):
 
 
 def test_total_loss_is_eq4(small_sizes, fake_batch):
-    module = PretrainModule(small_sizes, lambda_init=2.0)
+    module = PretrainModule(small_sizes, lambda_init=2.0, kl_scale=0.5)
     obs = module.world_model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"])
     terms = module.compute_losses(fake_batch, obs)
     assert all(torch.isfinite(v) and v.dtype == torch.float32 for v in terms.values())
     assert torch.isclose(terms["loss"], terms["pred"] + 2.0 * terms["hcu"], rtol=1e-5)
-    assert torch.isclose(terms["pred"], terms["recon_nll"] + terms["kl_balanced"], rtol=1e-5)
+    assert torch.isclose(terms["pred"], terms["recon_nll"] + 0.5 * terms["kl_balanced"], rtol=1e-5)
+    assert torch.isclose(terms["hcu"], -k_scaled_disagreement(obs.prior_mean, fake_batch["gaps"]), rtol=1e-5)
     assert terms["hcu"] < 0 and terms["kl"] > 0
+
+
+def test_the_hcu_term_trains_the_world_model_with_weight_lambda(small_sizes, fake_batch):
+    """The gradient of the loss's HCU part, loss − pred = −λ · E[k · disagreement], reaches the world model's
+    weights (eq. 4 minimises it with respect to them; λ alone is held fixed), as −λ times the disagreement's own."""
+    module = PretrainModule(small_sizes, lambda_init=2.0)
+    obs = module.world_model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"])
+    terms = module.compute_losses(fake_batch, obs)
+    weights = [w for w in module.world_model.parameters()]
+    hcu_part = torch.autograd.grad(terms["loss"] - terms["pred"], weights, retain_graph=True, allow_unused=True)
+    own = torch.autograd.grad(k_scaled_disagreement(obs.prior_mean, fake_batch["gaps"]), weights, allow_unused=True)
+    reached = [(g, o) for g, o in zip(hcu_part, own) if o is not None and o.abs().sum() > 0]
+    assert reached and all(g is not None and torch.allclose(g, -2.0 * o, rtol=1e-4, atol=1e-8) for g, o in reached)
+    assert module.log_lambda.grad is None  # λ moves by its own dual step (eq. 4), not by this loss
+
+
+def test_the_dual_step_follows_the_k_scaled_disagreement_of_the_batch(small_sizes, batch_factory, monkeypatch):
+    """Training feeds λ's step E[k · disagreement] of the step's own batch (eq. 4's constraint), with the closed-form
+    gradient λ · (E[k·dis] − target) on log λ."""
+    module = PretrainModule(small_sizes, lambda_init=1.5, hcu_target=0.3)
+    fed, gradients = [], []
+    step = module.dual_step
+
+    def spy(optimizer, k_disagreement, skip):
+        fed.append(k_disagreement.item())
+        step(optimizer, k_disagreement, skip)
+
+    monkeypatch.setattr(module, "dual_step", spy)
+    monkeypatch.setattr(torch.optim.Adam, "step", lambda self, *a, **k: gradients.append(
+        [p.grad.clone() for group in self.param_groups for p in group["params"] if p.grad is not None]))
+    batch = batch_factory(seed=3)
+    trainer = L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    trainer.fit(module, DataLoader([batch], batch_size=None))
+    noise = module.noise(batch["gaps"], 0, stream=0)
+    obs = module.world_model.observe(batch["frames"], batch["gaps"], batch["num_frames"], noise)  # the same step
+    expected = k_scaled_disagreement(obs.prior_mean, batch["gaps"]).item()
+    assert fed == [pytest.approx(expected, rel=1e-5)]
+    assert gradients[-1][0].item() == pytest.approx(1.5 * (expected - 0.3), rel=1e-5)
 
 
 def test_without_hcu_the_loss_is_the_elbo(small_sizes, fake_batch):

@@ -33,12 +33,15 @@ def test_observe_and_imagine_shapes():
     obs = rssm.observe(torch.randn(3, 7, 12), torch.randn(3, 7, 8))
     assert obs.deter.shape == (3, 7, 20) and obs.stoch.shape == (3, 7, 6)
     assert obs.post_mean.shape == (3, 7, 6) and obs.prior_mean.shape == obs.prior_std.shape == (5, 3, 7, 6)
-    states, means = rssm.imagine(obs.state(6), torch.randn(3, 4, 8))
+    conds = torch.randn(3, 4, 8)
+    states, means = rssm.imagine(obs.state(6), conds)
     assert states.deter.shape == (3, 4, 20) and states.stoch.shape == (3, 4, 6) and means.shape == (5, 3, 4, 6)
     # along the ensemble-mean path, each next stoch is the mean over heads
     assert torch.allclose(states.stoch, means.mean(0))
-    head_states, _ = rssm.imagine(obs.state(6), torch.randn(3, 4, 8), head=2)
+    head_states, head_means = rssm.imagine(obs.state(6), conds, head=2)
     assert head_states.stoch.shape == (3, 4, 6)
+    assert torch.equal(head_states.stoch, head_means[2])  # along head 2's own path, its mean is the next stoch
+    assert not torch.allclose(head_states.stoch, states.stoch)  # not the ensemble-mean path
 
 
 def test_batched_heads_equal_a_per_head_reference():
