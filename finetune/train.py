@@ -304,7 +304,7 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
         result["normalised_return"] = float(normalised_return(task, result["return"]))
     except KeyError:  # tasks outside the paper's Table 4 (e.g. the demo's cartpole) have no references
         pass
-    if task.startswith("metaworld"):
+    if task.startswith(("metaworld", "robodesk")):  # the suites with a success test
         result["success_rate"] = float(np.mean(successes))
     return result
 

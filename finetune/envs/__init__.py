@@ -36,7 +36,16 @@ if "MUJOCO_GL" not in os.environ:
 if os.environ["MUJOCO_GL"] in ("osmesa", "egl"):  # PyOpenGL (used by mujoco's Python renderer) must agree
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ.setdefault("DISABLE_RENDER_THREAD_OFFLOADING", "1")
-if importlib.util.find_spec("triton") is not None:
+if "triton" in sys.modules or importlib.util.find_spec("triton") is None:
+    pass
+elif "mujoco" in sys.modules and os.environ["MUJOCO_GL"] == "osmesa":  # OSMesa's LLVM is loaded: triton's would crash
+    warnings.warn(
+        "mujoco was imported before finetune.envs, so OSMesa is loaded and triton (which torch.compile loads) "
+        "would crash this process with a segmentation fault if loaded now; it is not loaded: import "
+        "finetune.envs before mujoco, dm_control or metaworld to keep torch.compile usable",
+        stacklevel=2,
+    )
+else:
     import triton  # noqa: F401, E402
 
 from finetune.envs.references import normalised_return  # noqa: E402

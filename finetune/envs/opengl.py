@@ -42,9 +42,8 @@ def probe(platform: str, timeout: float = 60.0) -> str | None:
     """Render a frame with MuJoCo under MUJOCO_GL=`platform` in a fresh interpreter: None if that works, else why
     not (GLFW's own complaint where it has one: its later errors only say that no context exists)."""
     env = {**os.environ, "MUJOCO_GL": platform}
-    env.pop("PYOPENGL_PLATFORM", None)
-    if platform in ("egl", "osmesa"):
-        env["PYOPENGL_PLATFORM"] = platform
+    if platform in ("egl", "osmesa"):  # as finetune.envs sets it: a user's own setting is kept, and probed with
+        env.setdefault("PYOPENGL_PLATFORM", platform)
     try:
         result = subprocess.run([sys.executable, "-c", RENDER_PROBE], env=env, capture_output=True, text=True,
                                 timeout=timeout)

@@ -186,9 +186,8 @@ def test_each_suite_completes_a_short_run(export_dir, tiny_config, tmp_path, tas
                       train_every=10, eval_every=steps, eval_episodes=1, log_every=steps // 4,
                       checkpoint_every=steps, fast_render=True, logdir=str(tmp_path / task))
     result = train(cfg, export_dir, progress=False)
-    assert set(result) >= {"return", "normalised_return"}
-    if task.startswith("metaworld"):
-        assert 0.0 <= result["success_rate"] <= 1.0
+    # Table 4 normalises Meta-World's returns; RoboDesk's references do not fit its reward (finetune/envs/references.py)
+    assert ("normalised_return" in result) == task.startswith("metaworld") and 0.0 <= result["success_rate"] <= 1.0
     assert (tmp_path / task / CHECKPOINT).exists()
     assert rows(tmp_path / task / "train.csv")
     assert torch.load(tmp_path / task / CHECKPOINT, weights_only=True)["counters"]["env_step"] == steps

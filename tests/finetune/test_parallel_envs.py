@@ -156,6 +156,12 @@ def test_the_rendering_probe_reports_why_it_failed(monkeypatch):
     assert opengl.probe("egl") == "no EGL device"
 
 
+def test_the_rendering_probe_keeps_the_users_pyopengl_platform(monkeypatch):
+    """The probe renders as this process will: MUJOCO_GL=egl with PYOPENGL_PLATFORM=osmesa cannot."""
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "osmesa")
+    assert "PYOPENGL_PLATFORM" in (opengl.probe("egl") or "")
+
+
 @pytest.mark.parametrize(("setting", "reason"), [("glfw", "The DISPLAY environment variable is missing"),
                                                  ("bogus", "invalid value for environment variable MUJOCO_GL")])
 def test_a_users_mujoco_gl_that_cannot_render_is_refused_in_one_line(export_dir, tmp_path, setting, reason):
