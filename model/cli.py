@@ -161,10 +161,9 @@ def lightning_cli(args: list[str]):
                 )
             asked_model, asked_k_max = config["model"].clone(), config["data"]["k_max"]
             super()._parse_ckpt_path()
-            resumed = self.config[subcommand]["model"]
-            changed = [f"model.{key} {value!r} (asked: {asked_model[key]!r})"
-                       for key, value in flat_settings(resumed).items()
-                       if key != "compile" and key in flat_settings(asked_model) and asked_model[key] != value]
+            resumed, asked = self.config[subcommand]["model"], flat_settings(asked_model)
+            changed = [f"model.{key} {value!r} (asked: {asked[key]!r})" for key, value in flat_settings(resumed).items()
+                       if key != "compile" and key in asked and asked[key] != value]
             if saved.get("k_max", asked_k_max) != asked_k_max:  # data.k_max sets model.k_max, also over the checkpoint's
                 changed.append(f"data.k_max {saved['k_max']!r} (asked: {asked_k_max!r})")
             if subcommand == "fit" and changed:
