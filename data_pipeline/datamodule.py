@@ -84,8 +84,8 @@ class ShardDataModule(lightning.LightningDataModule):
                 raise LoaderError(f"{error}; or train without validation (--trainer.limit_val_batches 0)") from None
             clips, sequences = sum(val_shards.eligible(hp.seq_len)), world_size * len(self.val_set) * hp.batch_size
             if clips < sequences:  # fine for the per-k metrics (each repeat has other gaps); worth knowing
-                rank_zero_info(f"validation reads {sequences} sequences ({world_size} ranks × {len(self.val_set)} "
-                               f"batches of {hp.batch_size}) from {clips} clips of at least {hp.seq_len} frames, so clips "
+                rank_zero_info(f"validation reads {sequences} sequences ({world_size} rank{'s' * (world_size > 1)} × "
+                               f"{len(self.val_set)} batches of {hp.batch_size}) from {clips} clips of at least {hp.seq_len} frames, so clips "
                                f"repeat within an evaluation, with other gaps; --data.val_batches "
                                f"{max(1, clips // (world_size * hp.batch_size))} reads each at most once")
 
