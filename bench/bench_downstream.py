@@ -194,7 +194,7 @@ def final_report(args: argparse.Namespace, names: list[str]) -> None:
     """Each run's last and best checkpoints and both references, --final-episodes episodes each from one env seed."""
     from finetune.config import step_unit
     from finetune.envs import make_env
-    from finetune.train import BEST, CHECKPOINT, evaluate, load_trained
+    from finetune.train import BEST, CHECKPOINT, evaluate, load_trained, resolve_device
 
     episodes, seed = args.final_episodes, args.seed + 20_000
     refs = references(args, episodes, seed)
@@ -220,7 +220,8 @@ def final_report(args: argparse.Namespace, names: list[str]) -> None:
             if not (logdir / checkpoint).exists():  # a run from before best.pt existed
                 continue
             env = make_env(args.task, seed=seed, **args.env)
-            cfg, agent, counters = load_trained(logdir, args.pretrained, env.action_space.shape[0], checkpoint=checkpoint)
+            cfg, agent, counters = load_trained(logdir, args.pretrained, env.action_space.shape[0],
+                                                resolve_device(args.sizes["device"]), checkpoint=checkpoint)
             unit, key = step_unit(cfg.paradigm)
             at = f"{unit[0]}{counters[key]}"  # u750: update 750, e12000: env step 12,000
             if at not in played:  # best.pt of the last evaluation is the last checkpoint

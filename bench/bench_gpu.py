@@ -82,8 +82,9 @@ PROFILED_STEPS = 10  # bare steps profiled after the timed ones (a GPU): the dev
 
 class StepTimer(L.Callback):
     """The wall-clock time at the start of training and at the end of every training batch, and the CPU time
-    of the training process (all its threads) at each batch end; the device is synchronised at the end of
-    training, so the last time covers all queued work."""
+    of the training process (all its threads) at each batch end; the device is synchronised at the last step's
+    end, so the last time covers all queued work, and not the last.ckpt the fit writes after it (the
+    checkpoint callbacks run after this one)."""
 
     def __init__(self):
         self.start, self.times, self.cpu_times = 0.0, [], []
@@ -92,12 +93,10 @@ class StepTimer(L.Callback):
         self.start = time.perf_counter()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step >= trainer.max_steps:
+            synchronize(pl_module.device)
         self.times.append(time.perf_counter())
         self.cpu_times.append(time.process_time())
-
-    def on_train_end(self, trainer, pl_module):
-        synchronize(pl_module.device)
-        self.times[-1] = time.perf_counter()
 
 
 class StepDiagnosis(L.Callback):

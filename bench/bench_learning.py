@@ -6,6 +6,7 @@
     python bench/bench_learning.py --set model_lr=6e-4 --set actor_lr=2e-4 --set critic_lr=2e-4
     python bench/bench_learning.py --plot runs/a runs/b --out curve.png  # redraw finished runs together
     python bench/bench_learning.py --gpu --agent hauwm --pretrained DIR  # cheetah run, Table 3 sizes, 10 GPU min
+    python bench/bench_learning.py --gpu --agent hauwm --make-export 300 --chunk 20000  # on a bare GPU machine
 
 Runs `finetune.train.train` in chunks of `--chunk` env steps (each chunk resumes the last from its
 checkpoint; a --logdir that holds a run goes on from it) until the wall-clock budget is spent, with small
@@ -142,12 +143,39 @@ def report(logdirs: list[Path], out: Path, minutes: float | None = None) -> None
     print(f"curve: {out}")
 
 
+def make_export(logdir: Path, steps: int, gpu: bool) -> Path:
+    """An export to fine-tune from, made here (LOGDIR-export; kept, and reused by a later call): the built-in
+    sample data and its shards (bench_gpu's), `steps` eager steps of configs/pretrain/ssv2.yaml on one device
+    (--gpu; tiny.yaml on the CPU) without validation, exported. A GPU machine starts bare, and a Table 3-size
+    export (37.5 MB) is too large to carry there."""
+    from bench.bench_gpu import sample_shards
+    from model.cli import main as pretrain
+
+    export, work = logdir.with_name(logdir.name + "-export"), logdir.with_name(logdir.name + "-pretrain")
+    if (export / "config.json").exists():
+        return export
+    started = time.perf_counter()
+    shards = work / "shards" if (work / "shards" / "manifest.json").exists() else sample_shards(work)
+    fit = ["fit", "--config", f"configs/pretrain/{'ssv2' if gpu else 'tiny'}.yaml", "--data.shards", str(shards),
+           "--model.compile", "off", "--trainer.max_steps", str(steps), "--trainer.limit_val_batches", "0",
+           "--trainer.default_root_dir", str(work / "run"), "--trainer.enable_progress_bar", "false",
+           "--ckpt_path", "last"] + (["--trainer.devices", "1", "--trainer.strategy", "auto"] if gpu else [])
+    if pretrain(fit) != 0 or pretrain(["export", str(work / "run" / "checkpoints" / "last.ckpt"), "--out",
+                                       str(export)]) != 0:
+        raise SystemExit("bench_learning: making the export failed (above)")
+    print(f"export: {export} ({steps} pre-training steps, {(time.perf_counter() - started) / 60:.1f} min)", flush=True)
+    return export
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--gpu", action="store_true", help="Table 3 sizes on a CUDA device (GPU_SETTINGS)")
     parser.add_argument("--task", help="default: dmc_cartpole_swingup (CPU), dmc_cheetah_run (--gpu)")
     parser.add_argument("--agent", default="scratch", choices=["scratch", "hauwm"])
     parser.add_argument("--pretrained", help="export directory (agent hauwm)")
+    parser.add_argument("--make-export", type=int, metavar="STEPS",
+                        help="agent hauwm without --pretrained: pre-train STEPS steps on the built-in sample data "
+                             "first and fine-tune from that export (for a GPU machine that starts bare)")
     parser.add_argument("--minutes", type=float, help="wall-clock budget for training (default 25; --gpu 10)")
     parser.add_argument("--chunk", type=int, help="env steps per resumed chunk (default 2000; --gpu 50000)")
     parser.add_argument("--logdir", default="runs/bench_learning")
@@ -160,6 +188,10 @@ def main() -> None:
         report(args.plot, args.out or args.plot[0] / "learning_curve.png")
         return
 
+    if args.make_export is not None:
+        if args.agent != "hauwm" or args.pretrained:
+            parser.error("--make-export makes the export of agent hauwm: use it with --agent hauwm, without --pretrained")
+        args.pretrained = make_export(Path(args.logdir), args.make_export, args.gpu)
     args.task = args.task or ("dmc_cheetah_run" if args.gpu else "dmc_cartpole_swingup")
     args.minutes = args.minutes or (10.0 if args.gpu else 25.0)
     args.chunk = args.chunk or (50_000 if args.gpu else 2000)

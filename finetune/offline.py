@@ -45,7 +45,7 @@ class OfflineAgent(Agent):
         return self.penalty
 
     def finish_update(self) -> dict[str, torch.Tensor]:
-        return dict(self.penalty.metrics)
+        return {**self.penalty.metrics, **self.penalty.imagined_metrics}
 
 
 def train_offline(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: bool = True) -> dict[str, float]:

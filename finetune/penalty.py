@@ -48,24 +48,28 @@ def uncertainty(kind: str, mean: torch.Tensor, std: torch.Tensor, sample: torch.
 
 
 class PenalisedReward:
-    """r̃ for one update's imagination (a finetune.world_model.RewardFn); `metrics` holds the last values of
-    u on the imagined steps and, after `measure_dataset`, on the dataset's own transitions."""
+    """r̃ for one update's imagination (a finetune.world_model.RewardFn). `metrics` holds the last values of u on
+    the dataset's own transitions (`measure_dataset`), `imagined_metrics` those on the imagined steps: a new dict
+    each call, since compiled code guards on the keys of a dict it finds filled in (a dict that grew after the
+    first update would compile the imagination again)."""
 
     def __init__(self, world_model: WorldModel, kind: str, scale: float, frozen_weight: float):
         self.world_model, self.kind, self.scale, self.frozen_weight = world_model, kind, scale, frozen_weight
         self.metrics: dict[str, torch.Tensor] = {}
+        self.imagined_metrics: dict[str, torch.Tensor] = {}
 
     def __call__(self, rollout: Rollout) -> torch.Tensor:
         reward = self.world_model.predicted_reward(rollout.new_feats)  # [H, N]
         u = uncertainty(self.kind, rollout.prior_mean.transpose(0, 1), rollout.prior_std.transpose(0, 1),
                         rollout.new_stoch)  # heads first: [M, H, N, S] → [H, N]
+        imagined = {"penalty_u_imagined": u.mean().detach(), "imagined_model_reward": reward.mean().detach()}
         total = u
         if rollout.frozen_means is not None:
             frozen_u = disagreement(rollout.frozen_means.transpose(0, 1))  # [H, N], no gradient (action-free)
-            self.metrics["frozen_disagreement_imagined"] = frozen_u.mean().detach()
+            imagined["frozen_disagreement_imagined"] = frozen_u.mean().detach()
             if self.frozen_weight > 0:
                 total = u + self.frozen_weight * frozen_u
-        self.metrics.update({"penalty_u_imagined": u.mean().detach(), "imagined_model_reward": reward.mean().detach()})
+        self.imagined_metrics = imagined
         return reward - self.scale * total
 
     @torch.no_grad()

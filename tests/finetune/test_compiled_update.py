@@ -30,8 +30,9 @@ from test_dual_stream import ACTION_DIM, make_agent, random_batch  # noqa: I001 
 PARADIGMS = {"offline": (OfflineAgent, {"model_heads": 3}), "imitation": (ImitationAgent, {})}
 
 
-def run(cfg, export_dir, compile_mode, agent_class=None):
-    """One update and one action of a fresh agent (seed 0) → (metrics, parameters before, after, actions)."""
+def run(cfg, export_dir, compile_mode, agent_class=None, updates: int = 1):
+    """`updates` updates and one action of a fresh agent (seed 0) → (the last update's metrics, parameters before,
+    after, actions)."""
     torch.manual_seed(0)
     if agent_class is None:
         agent = make_agent(cfg, export_dir)
@@ -42,7 +43,8 @@ def run(cfg, export_dir, compile_mode, agent_class=None):
     before = {name: p.detach().clone() for name, p in agent.named_parameters()}
     batch = random_batch(cfg, np.random.default_rng(0))
     torch.manual_seed(1)
-    metrics = {name: float(value) for name, value in agent.update(batch).items()}
+    for _ in range(updates):
+        metrics = {name: float(value) for name, value in agent.update(batch).items()}
     latent, prev_action = agent.initial(2)
     actions, _, _ = agent.act(batch["obs"][:2, 0], latent, prev_action, explore=True)
     after = {name: p.detach().clone() for name, p in agent.named_parameters()}
@@ -55,17 +57,19 @@ def small(tiny_config, agent_kind, **extra):
 
 @pytest.mark.parametrize("paradigm", ["online", *PARADIGMS])
 def test_every_region_is_captured_whole_and_matches_eager_exactly(export_dir, tiny_config, monkeypatch, paradigm):
-    """Offline RL's penalised reward and imitation's discriminator reward are traced inside the imagination region."""
+    """Offline RL's penalised reward and imitation's discriminator reward are traced inside the imagination region, and
+    a second update runs the graphs of the first (nothing it keeps between updates makes them recompile)."""
     compile_ = torch.compile
     monkeypatch.setattr(torch, "compile", lambda fn, mode: compile_(fn, backend="eager"))
     torch._dynamo.reset()
     counters.clear()
     agent_class, extra = PARADIGMS.get(paradigm, (None, {}))
     cfg = small(tiny_config, "hauwm", paradigm=paradigm, **extra)
-    eager_metrics, before, eager_after, eager_actions = run(cfg, export_dir, None, agent_class)
-    metrics, _, after, actions = run(cfg, export_dir, "default", agent_class)
+    eager_metrics, before, eager_after, eager_actions = run(cfg, export_dir, None, agent_class, updates=2)
+    metrics, _, after, actions = run(cfg, export_dir, "default", agent_class, updates=2)
     assert not counters["graph_break"], dict(counters["graph_break"])
-    assert counters["stats"]["unique_graphs"] == 3  # model loss, imagination with both losses, acting
+    # model loss, imagination with both losses, acting: and the second update compiles nothing again
+    assert counters["stats"]["unique_graphs"] == 3
     assert metrics == eager_metrics
     assert all(torch.equal(after[name], eager_after[name]) for name in after)
     assert any(not torch.equal(after[name], before[name]) for name in after)
