@@ -254,7 +254,7 @@ def sample_shards(work: Path) -> Path:
 def linked_copies(shards: Path, out: Path, copies: int) -> Path:
     """A shard directory whose train split lists every train shard `copies` times (symbolic links, one
     manifest): the same clips, an epoch `copies` times as long. The validation split is linked once."""
-    manifest = json.loads((shards / MANIFEST_FILE).read_text())
+    manifest = read_manifest(shards)
     out.mkdir(parents=True, exist_ok=True)
     for split, entry in manifest["splits"].items():
         times = copies if split == "train" else 1

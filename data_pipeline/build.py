@@ -69,11 +69,8 @@ class ShardPlan:
 
 
 def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
     with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+        return hashlib.file_digest(file, "sha256").hexdigest()
 
 
 def _write_json_atomic(path: Path, data, lines: list[dict] | None = None, writer: int = 0) -> None:

@@ -1,7 +1,7 @@
 """The training loader: WebDataset shards → batches of variable-gap sequences (docs/architecture.md §2).
 
-Per epoch, the shard list is shuffled globally with `seed + epoch`, then split by node (rank) and by
-DataLoader worker (`webdataset.split_by_node`, `split_by_worker`). Each worker cycles over its shards
+Per epoch, the shard list is shuffled globally with `seed + epoch`, then split by node (rank, `webdataset.split_by_node`)
+and by DataLoader worker (every `workers`-th shard: `SequenceDataset.stream_urls`). Each worker cycles over its shards
 pass after pass and stops after exactly
 `batches_per_worker` batches, computed up front from the manifest's per-shard frame counts:
 

@@ -181,7 +181,7 @@ class WorldModel(nn.Module):
             with torch.no_grad():
                 frozen = self.frozen.rssm.observe(self.encode(images), self.frozen_cond(batch, length))
             frozen_state = RSSMState(frozen.deter, frozen.stoch)
-            posterior_input = self.frozen.rssm.feature(frozen_state)  # [B, L, 230]
+            posterior_input = self.frozen.rssm.feature(frozen_state)  # [B, L, F̂], F̂ = the export's feature_dim
         else:
             frozen_state, posterior_input = None, self.encode(images)
         new = self.rssm.observe(posterior_input, actions)

@@ -38,7 +38,7 @@ from torch import nn
 
 from model.config import ConfigError, WorldModelConfig, saved_settings
 from model.evaluation import horizon_metrics, horizon_sums
-from model.losses import balanced_kl, disagreement, k_scaled_disagreement, reconstruction_nll
+from model.losses import balanced_kl, disagreement, hcu_loss, reconstruction_nll
 from model.networks import preprocess
 from model.rssm import Observation, RSSMState
 from model.world_model import WorldModel
@@ -201,16 +201,16 @@ class PretrainModule(L.LightningModule):
                 obs.post_mean, obs.post_std, obs.prior_mean, obs.prior_std, self.hparams.kl_balance
             )  # [B, L]
             prediction = recon_nll + self.hparams.kl_scale * kl_balanced.mean()
-            k_disagreement = k_scaled_disagreement(obs.prior_mean, batch["gaps"])  # = −L_HCU
+            hcu = hcu_loss(obs.prior_mean, batch["gaps"])  # eq. 3: −E[k · disagreement]
             weight = self.hcu_weight().detach()
             return {
-                "loss": prediction - weight * k_disagreement,
+                "loss": prediction + weight * hcu,  # eq. 4 with λ held fixed (λ takes its own dual step)
                 "pred": prediction,
                 "recon_nll": recon_nll.detach(),
                 "kl": kl.mean(),
                 "kl_balanced": kl_balanced.detach().mean(),
-                "hcu": -k_disagreement.detach(),
-                "k_disagreement": k_disagreement.detach(),
+                "hcu": hcu.detach(),
+                "k_disagreement": -hcu.detach(),  # the constraint of λ's dual step
                 "disagreement": disagreement(obs.prior_mean.detach()).mean(),
                 "prior_std": obs.prior_std.detach().mean(),
                 "post_std": obs.post_std.detach().mean(),

@@ -1,6 +1,6 @@
 """Random and expert episode returns of the paper's Table 4, for normalised returns.
 
-normalised = (R - random) / (expert - random), so 0 is a random policy and 1 the expert (DESIGN.md,
+normalised = (R - random) / (expert - random), so 0 is a random policy and 1 the expert (the design notes,
 "Fine-tuning"; paper appendix F.2). The references are the Table 4 means over four seeds; their
 returns are per episode of the default length (DMC 1000, Meta-World 500 simulator steps).
 
