@@ -105,6 +105,13 @@ def test_two_ranks_by_two_workers_get_equal_batch_counts_over_uneven_shards(buil
     assert all(not (a & b) for i, a in enumerate(streams) for b in streams[i + 1:])  # each shard read by one stream
 
 
+def test_each_epoch_deals_the_shards_to_the_streams_anew_and_all_of_them(built_shards):
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=2)
+    deals = [(tuple(dataset.stream_urls(0, epoch)), tuple(dataset.stream_urls(1, epoch))) for epoch in range(6)]
+    assert all(sorted(first + second) == sorted(dataset.urls) for first, second in deals)  # every shard, once
+    assert len(set(deals)) > 1  # the global shuffle with seed + epoch moves shards between streams
+
+
 def test_real_dataloader_workers_yield_len_batches_without_repeats_within_a_pass(built_shards):
     shards = shard_set(built_shards, "train")
     clips_in = dict(zip(shards.urls, shards.eligible(8)))

@@ -98,3 +98,40 @@ def test_layer_norm_setting_reaches_actor_and_critic_only(export_dir, tiny_confi
     for net in (behavior.actor.net, behavior.critic.net, behavior.target_critic.net):
         assert sum(isinstance(m, torch.nn.LayerNorm) for m in net) == (2 if layer_norm else 0)
     assert not any(isinstance(m, torch.nn.LayerNorm) for m in agent.world_model.reward)
+
+
+def test_rewards_and_actions_line_up_with_the_states_they_belong_to(export_dir, tiny_config):
+    """Replay entry t holds o_t, a_{t−1} and r_t: the reward head learns r_t from s̃_t, the new stream's state at t
+    depends on actions up to a_{t−1} only, and imagination's reward is that of the state reached, R(s̃_{t+1})."""
+    torch.manual_seed(0)
+    cfg = tiny_config(noise_std=0.0)
+    wm = make_agent(cfg, export_dir).world_model
+    batch = {k: torch.as_tensor(v) for k, v in random_batch(cfg, np.random.default_rng(3)).items()}
+    torch.manual_seed(1)
+    _, latent, metrics = wm.loss(batch)
+    predicted = wm.predicted_reward(wm.rssm.feature(latent.new))  # [B, L]
+    torch.testing.assert_close(metrics["reward_nll"], 0.5 * (predicted - batch["reward"]).pow(2).mean())
+
+    changed = {**batch, "action": batch["action"].clone()}
+    changed["action"][:, -1] += 0.5  # a_{L−2}, which leads to o_{L−1}
+    torch.manual_seed(1)
+    latent_changed, _ = wm.observe(changed["obs"], changed["action"])
+    assert torch.equal(latent_changed.new.deter[:, :-1], latent.new.deter[:, :-1])  # nothing before it moves
+    assert not torch.allclose(latent_changed.new.deter[:, -1], latent.new.deter[:, -1])
+
+    feats, rewards, _ = wm.imagine(latent, make_agent(cfg, export_dir).behavior.actor, horizon=2)
+    new_dim = wm.rssm.feature_dim
+    for t in range(2):
+        torch.testing.assert_close(rewards[t], wm.predicted_reward(feats[t + 1, :, -new_dim:]))
+
+
+def test_free_nats_floor_each_kl_part(export_dir, tiny_config):
+    """DreamerV2's free nats: a KL part below `free_nats` counts as free_nats and sends no gradient."""
+    torch.manual_seed(0)
+    cfg = tiny_config(free_nats=1e6, kl_scale=0.5)
+    wm = make_agent(cfg, export_dir).world_model
+    batch = {k: torch.as_tensor(v) for k, v in random_batch(cfg, np.random.default_rng(4)).items()}
+    loss, _, metrics = wm.loss(batch)
+    torch.testing.assert_close(loss, metrics["recon_nll"] + metrics["reward_nll"] + 0.5 * 1e6)
+    loss.backward()
+    assert wm.rssm.prior_out.weight.grad is None or not wm.rssm.prior_out.weight.grad.any()  # the heads learn nothing

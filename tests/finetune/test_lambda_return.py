@@ -82,3 +82,30 @@ def test_actor_saturation_is_reported():
     with torch.no_grad():
         learner.actor.net[-1].bias[0] = 20.0  # μ ≈ 20 on every state: tanh' ≈ 1e-17
     assert learner.update(imagine, start)["actor_saturated"] == 1.0
+
+
+def test_the_losses_are_the_documented_formulas_and_the_target_follows_the_critic():
+    """Actor: −E[γ^t (V^λ_t + η H_t)] with V^λ bootstrapped from the target critic; critic: E[γ^t ½ (v(z_t) −
+    sg V^λ_t)²]; after the step the target moves a fraction τ towards the critic."""
+    torch.manual_seed(0)
+    learner = ActorCritic(feat_dim=4, action_dim=1, units=8, horizon=3, gamma=0.5, lam=0.7, entropy_scale=0.1,
+                          target_fraction=0.02)
+    with torch.no_grad():
+        learner.critic.net[-1].bias += 5.0  # the critic and its target now differ
+    feats, rewards, entropies = torch.randn(4, 6, 4), torch.randn(3, 6), []
+
+    def imagine(start, policy, horizon):  # fixed states and rewards; the actor's own entropy there
+        entropies.append(policy(feats[:-1]).entropy())
+        return feats, rewards, entropies[-1]
+
+    actor_loss, critic_loss, _, _ = learner.losses(imagine, None)
+    entropy = entropies[-1].detach()
+    returns = lambda_return(rewards, learner.target_critic(feats), 0.5, 0.7)
+    weights = torch.tensor([1.0, 0.5, 0.25])[:, None]
+    torch.testing.assert_close(actor_loss, -(weights * (returns + 0.1 * entropy)).mean())
+    torch.testing.assert_close(critic_loss, (weights * 0.5 * (learner.critic(feats[:-1]) - returns) ** 2).mean())
+
+    target_before = [p.clone() for p in learner.target_critic.parameters()]
+    learner.step(actor_loss, critic_loss, feats, {})
+    for target, before, online in zip(learner.target_critic.parameters(), target_before, learner.critic.parameters()):
+        torch.testing.assert_close(target, torch.lerp(before, online, 0.02))

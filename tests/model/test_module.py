@@ -14,7 +14,7 @@ from lightning.pytorch.plugins import MixedPrecision
 from torch.utils.data import DataLoader
 
 from model.config import WorldModelConfig
-from model.losses import k_scaled_disagreement
+from model.losses import gaussian_kl, k_scaled_disagreement
 from model.module import ConfigError, PretrainModule
 
 
@@ -59,6 +59,17 @@ def test_total_loss_is_eq4(small_sizes, fake_batch):
     assert torch.isclose(terms["pred"], terms["recon_nll"] + 0.5 * terms["kl_balanced"], rtol=1e-5)
     assert torch.isclose(terms["hcu"], -k_scaled_disagreement(obs.prior_mean, fake_batch["gaps"]), rtol=1e-5)
     assert terms["hcu"] < 0 and terms["kl"] > 0
+
+
+def test_the_kl_averages_every_head_against_the_posterior(small_sizes, fake_batch):
+    module = PretrainModule(small_sizes, lambda_init=0.0)
+    obs = module.world_model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"])
+    terms = module.compute_losses(fake_batch, obs)
+    per_head = gaussian_kl(obs.post_mean, obs.post_std, obs.prior_mean, obs.prior_std).mean((1, 2))  # [M]
+    torch.testing.assert_close(terms["kl"], per_head.mean())
+    assert per_head.std() > 0  # the heads differ, so a KL of one head alone would not pass
+    grad = torch.autograd.grad(terms["pred"], module.world_model.rssm.prior_out.weight)[0]  # [M, H, 2S]
+    assert all(grad[i].abs().sum() > 0 for i in range(small_sizes.ensemble))  # every head learns from it
 
 
 def test_the_hcu_term_trains_the_world_model_with_weight_lambda(small_sizes, fake_batch):

@@ -5,8 +5,10 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from model.rssm import EnsembleRSSM, RSSMState
+from model.rssm import EnsembleRSSM, RSSMState, _mean_std
 from model.world_model import WorldModel
+
+from conftest import SMALL  # noqa: I001 (tests/model/conftest.py)
 
 
 def small_rssm(ensemble: int = 5) -> EnsembleRSSM:
@@ -82,3 +84,34 @@ def test_posterior_samples_follow_the_noise():
     assert torch.equal(a.stoch, b.stoch) and not torch.equal(a.stoch, c.stoch)
     zero = rssm.observe(embeds, conds, noise=torch.zeros(2, 4, rssm.stoch_dim))
     assert torch.equal(zero.stoch, zero.post_mean)  # stoch = mean + std · noise
+
+
+def test_the_heads_read_the_gap_and_the_posterior_reads_the_new_state():
+    """p_i(s_t | h_t, Δt_k) and q(s_t | h_t, e_t): the heads see the step's gap embedding, the posterior the
+    deterministic state of this step (not the previous one)."""
+    rssm = small_rssm()
+    prev = rssm.obs_step(rssm.initial(4, "cpu"), torch.randn(4, 8), torch.randn(4, 12))[0]  # h ≠ 0
+    cond, embed = torch.randn(4, 8), torch.randn(4, 12)
+    deter, mean, std = rssm.img_step(prev, cond)
+    heads_mean, heads_std = rssm.heads(deter, cond)
+    assert torch.equal(mean, heads_mean) and torch.equal(std, heads_std)
+    assert not torch.allclose(rssm.heads(deter, torch.zeros_like(cond))[0], mean)  # the gap changes the heads
+    state, post_mean, post_std, prior_mean, _ = rssm.obs_step(prev, cond, embed, noise=torch.zeros(4, 6))
+    expected_mean, expected_std = _mean_std(rssm.posterior(torch.cat([deter, embed], -1)), rssm.min_std, rssm.max_std)
+    assert torch.equal(state.deter, deter) and torch.equal(prior_mean, mean)
+    assert torch.equal(post_mean, expected_mean) and torch.equal(post_std, expected_std)
+    assert torch.equal(state.stoch, post_mean)  # zero noise: the sample is the mean
+
+
+def test_each_frame_is_conditioned_on_the_gap_before_it_and_its_clips_length(monkeypatch):
+    torch.manual_seed(0)
+    model = WorldModel(SMALL)
+    gaps, num_frames = torch.tensor([[0, 1, 3, 2], [0, 5, 1, 1]]), torch.tensor([40, 90])
+    seen = []
+    observe = model.rssm.observe
+    monkeypatch.setattr(model.rssm, "observe", lambda embeds, conds, **kw: seen.append(conds) or observe(embeds, conds, **kw))
+    model.observe(torch.zeros(2, 4, 3, 64, 64, dtype=torch.uint8), gaps, num_frames)
+    for b in range(2):
+        for t in range(4):
+            torch.testing.assert_close(seen[0][b, t], model.temporal(gaps[b, t], num_frames[b]))
+    assert not torch.allclose(model.conditions(gaps, torch.tensor([40, 40]))[1], seen[0][1])  # T matters (relative)
