@@ -91,8 +91,8 @@ def main() -> None:
             print(f"{update:>6} updates ({time.perf_counter() - start:5.0f} s): imagined reward per step "
                   f"{[round(r, 2) for r in imagined]}", flush=True)
         if update < args.updates:
-            agent.world_model.update({key: torch.as_tensor(value) for key, value in
-                                      replay.sample(cfg.batch_size, cfg.seq_len).items()})
+            batch = {key: torch.as_tensor(value) for key, value in replay.sample(cfg.batch_size, cfg.seq_len).items()}
+            agent.world_model.step(*agent.world_model.loss(batch))
 
 
 if __name__ == "__main__":

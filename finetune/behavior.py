@@ -123,6 +123,8 @@ class Critic(nn.Module):
         return self.net(feat).squeeze(-1)
 
 
+ADAM_EPS = 1e-5  # DreamerV2's ε for every Adam of fine-tuning (world model, actor, critic, discriminator)
+
 # |tanh μ| above this means tanh' = 1 − tanh² μ < 2e-3: the dynamics-backprop gradient that reaches μ has all
 # but vanished, and an actor whose loc sits there on every state no longer moves (logged as actor_saturated)
 SATURATED = 0.999
@@ -135,25 +137,22 @@ Imagine = Callable[..., tuple[torch.Tensor, ...]]
 class ActorCritic(nn.Module):
     def __init__(self, feat_dim: int, action_dim: int, units: int, horizon: int = 15, gamma: float = 0.99,
                  lam: float = 0.95, actor_lr: float = 8e-5, critic_lr: float = 8e-5, entropy_scale: float = 1e-4,
-                 target_fraction: float = 0.02, grad_clip: float = 100.0, adam_eps: float = 1e-5,
+                 target_fraction: float = 0.02, grad_clip: float = 100.0,
                  layer_norm: bool = True):
         super().__init__()
         self.actor = Actor(feat_dim, action_dim, units, layer_norm)
         self.critic = Critic(feat_dim, units, layer_norm)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=actor_lr, eps=adam_eps)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=critic_lr, eps=adam_eps)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=actor_lr, eps=ADAM_EPS)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=critic_lr, eps=ADAM_EPS)
         self.horizon, self.gamma, self.lam = horizon, gamma, lam
         self.entropy_scale, self.target_fraction, self.grad_clip = entropy_scale, target_fraction, grad_clip
 
-    def update(self, imagine: Imagine, start: object, reward: Callable | None = None) -> dict[str, torch.Tensor]:
-        """One actor and one critic step on trajectories imagined from the posterior states `start`, with the
-        rewards of `reward` (None: the world model's reward head; offline RL and imitation pass their own)."""
-        return self.step(*self.losses(imagine, start, reward))
-
     def losses(self, imagine: Imagine, start: object, reward: Callable | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
-        """Imagine from `start` → (actor loss, critic loss, the imagined features [H+1, N, F] detached, metrics).
+        """Imagine from the posterior states `start` → (actor loss, critic loss, the imagined features [H+1, N, F]
+        detached, metrics), with the rewards of `reward` (None: the world model's reward head; offline RL and
+        imitation pass their own); `step` takes the result.
 
         The two losses share no parameters (the critic reads detached features and returns), so one
         backward pass through both gives each network its own gradient; the agent may run this compiled.

@@ -29,16 +29,16 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from finetune.behavior import mlp
+from finetune.behavior import ADAM_EPS, mlp
 from finetune.world_model import no_param_grads
 
 
 class Discriminator(nn.Module):
     def __init__(self, feat_dim: int, action_dim: int, units: int, layer_norm: bool = True, lr: float = 8e-5,
-                 gp_scale: float = 10.0, grad_clip: float = 100.0, adam_eps: float = 1e-5):
+                 gp_scale: float = 10.0, grad_clip: float = 100.0):
         super().__init__()
         self.net = mlp(feat_dim + action_dim, 1, units, layer_norm=layer_norm)
-        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=lr, eps=adam_eps)
+        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=lr, eps=ADAM_EPS)
         self.gp_scale, self.grad_clip = gp_scale, grad_clip
 
     def logit(self, feat: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

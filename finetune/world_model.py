@@ -50,7 +50,7 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from finetune.behavior import mlp
+from finetune.behavior import ADAM_EPS, mlp
 from finetune.config import FinetuneConfig
 from model.config import WorldModelConfig
 from model.losses import gaussian_kl, reconstruction_nll
@@ -120,7 +120,7 @@ class WorldModel(nn.Module):
         self.decoder = self._decoder(cfg, frozen)
         self.reward = mlp(self.rssm.feature_dim, 1, cfg.units)
         self.kl_balance, self.kl_scale, self.free_nats = cfg.kl_balance, cfg.kl_scale, cfg.free_nats
-        self.optimizer = torch.optim.Adam(self.trainable_parameters(), lr=cfg.model_lr, eps=1e-5)
+        self.optimizer = torch.optim.Adam(self.trainable_parameters(), lr=cfg.model_lr, eps=ADAM_EPS)
         self.grad_clip = cfg.grad_clip
         self.conv_bf16 = cfg.conv_bf16
 
@@ -206,10 +206,6 @@ class WorldModel(nn.Module):
         loss = recon_nll + reward_nll + self.kl_scale * kl
         metrics = {"model_loss": loss, "recon_nll": recon_nll, "reward_nll": reward_nll, "kl": kl_post}
         return loss, latent, {name: value.detach() for name, value in metrics.items()}
-
-    def update(self, batch: dict[str, torch.Tensor]) -> tuple[Latent, dict[str, torch.Tensor]]:
-        """One Adam step on the new parts; returns the (detached) posterior latents as imagination starts."""
-        return self.step(*self.loss(batch))
 
     def step(self, loss: torch.Tensor, latent: Latent, metrics: dict[str, torch.Tensor]) -> tuple[Latent, dict[str, torch.Tensor]]:
         """Backward, clip and Adam step on the result of `loss` (which the agent may run compiled)."""

@@ -62,7 +62,7 @@ def test_actor_update_moves_actions_towards_imagined_reward():
     mean_action = lambda: learner.actor(start).mode[:, 0].mean().item()  # noqa: E731
     before = mean_action()
     for _ in range(30):
-        metrics = learner.update(imagine, start)
+        metrics = learner.step(*learner.losses(imagine, start))
     assert mean_action() > before + 0.2
     assert set(metrics) >= {"actor_loss", "critic_loss", "imagined_return"}
 
@@ -78,10 +78,10 @@ def test_actor_saturation_is_reported():
         dists = [policy(f) for f in feats[:-1]]
         return torch.stack(feats), torch.zeros(horizon, len(start)), torch.stack([d.entropy() for d in dists])
 
-    assert learner.update(imagine, start)["actor_saturated"] == 0.0  # at init tanh μ is near 0
+    assert learner.step(*learner.losses(imagine, start))["actor_saturated"] == 0.0  # at init tanh μ is near 0
     with torch.no_grad():
         learner.actor.net[-1].bias[0] = 20.0  # μ ≈ 20 on every state: tanh' ≈ 1e-17
-    assert learner.update(imagine, start)["actor_saturated"] == 1.0
+    assert learner.step(*learner.losses(imagine, start))["actor_saturated"] == 1.0
 
 
 def test_the_losses_are_the_documented_formulas_and_the_target_follows_the_critic():
