@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 
+import numpy as np
 import pytest
 import torch
 
@@ -198,3 +199,28 @@ def test_a_budget_within_the_prefill_says_it_makes_no_update(export_dir, tmp_pat
     assert main(["--config", "configs/finetune/demo.yaml", "--steps", "20", "--pretrained", str(export_dir)] + settings) == 0
     assert "note: steps 20 end within the prefill of 20 env steps of random actions" in capsys.readouterr().err
     assert rows(tmp_path / "run" / "eval.csv") and not (tmp_path / "run" / "train.csv").exists()
+
+
+@pytest.mark.parametrize("num_envs", [1, 2])
+def test_the_prefill_acts_at_random_and_the_agent_acts_after_it(export_dir, tiny_config, tmp_path, monkeypatch, num_envs):
+    """The first `prefill` env steps (over all envs) take uniform random actions; every later one is the agent's."""
+    from finetune.agent import Agent
+    from finetune.replay import episode_files
+
+    act = Agent.act
+
+    def marked(self, obs, latent, prev_action, explore):  # the agent's actions, marked 0.123
+        actions, latent, prev_action = act(self, obs, latent, prev_action, explore)
+        return np.full_like(actions, 0.123), latent, torch.full_like(prev_action, 0.123)
+
+    monkeypatch.setattr(Agent, "act", marked)
+    cfg = tiny_config(task="dmc_cartpole_swingup", action_repeat=2, time_limit=10, steps=80, prefill=40, train_every=20,
+                      eval_every=80, eval_episodes=1, checkpoint_every=80, num_envs=num_envs, fast_render=True,
+                      logdir=str(tmp_path / "run"))
+    train(cfg, export_dir, progress=False)
+    episodes = [np.load(path)["action"][1:, 0] for path in episode_files(tmp_path / "run" / "replay")]  # a_0..a_{T−1}
+    by_env = [np.concatenate(episodes[i::num_envs]) for i in range(num_envs)]  # the envs finish episodes in turn
+    random_steps = cfg.prefill // (num_envs * cfg.action_repeat)  # agent steps of each env within the prefill
+    for actions in by_env:
+        assert len(actions) == cfg.steps // (num_envs * cfg.action_repeat)
+        assert not np.isclose(actions[:random_steps], 0.123).any() and np.isclose(actions[random_steps:], 0.123).all()
