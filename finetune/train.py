@@ -185,13 +185,17 @@ def differing_settings(cfg: FinetuneConfig, written: dict[str, object],
     return [(key, values.get(key)) for key in keys if hasattr(cfg, key) and values.get(key) != getattr(cfg, key)]
 
 
+def changed_settings(cfg: FinetuneConfig, written: dict[str, object]) -> list[str]:
+    """`key=written (asked: cfg's)` for each setting outside RESUMABLE whose value in `written` is not cfg's."""
+    return [f"{key}={value!r} (asked: {getattr(cfg, key)!r})"
+            for key, value in differing_settings(cfg, written, [key for key in written if key not in RESUMABLE])]
+
+
 def refuse_changed_settings(cfg: FinetuneConfig, written: dict[str, object], path: Path) -> None:
     """A FinetuneError if `cfg` resumes the checkpoint at `path` (trained with the settings `written`) with a setting
     outside RESUMABLE changed: part of the run would have learned with one value and part with another, and
     config.yaml keeps only the last."""
-    changed = [f"{key}={value!r} (asked: {getattr(cfg, key)!r})"
-               for key, value in differing_settings(cfg, written, [key for key in written if key not in RESUMABLE])]
-    if changed:
+    if changed := changed_settings(cfg, written):
         raise FinetuneError(f"{path} was trained with {', '.join(changed[:3])}: a resume goes on with the settings "
                             f"the run began with (only {', '.join(RESUMABLE)} may change); drop the change, or train "
                             "in another --logdir")
@@ -206,11 +210,7 @@ def refuse_other_run(cfg: FinetuneConfig) -> None:
         written = yaml.safe_load(path.read_text()) if path.is_file() else None
     except (OSError, yaml.YAMLError):
         written = None  # unreadable: nothing to compare with; it is written again
-    if not isinstance(written, dict):
-        return
-    changed = [f"{key}={value!r} (asked: {getattr(cfg, key)!r})"
-               for key, value in differing_settings(cfg, written, [key for key in written if key not in RESUMABLE])]
-    if changed:
+    if isinstance(written, dict) and (changed := changed_settings(cfg, written)):
         raise FinetuneError(f"{cfg.logdir} holds a run with {', '.join(changed[:3])} that stopped before its first "
                             f"checkpoint; its replay episodes would train this one: train in another --logdir, or "
                             f"delete {cfg.logdir} first")
