@@ -9,14 +9,14 @@ frames member and a JSON member whose `num_frames` matches the frames stored.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
-import tarfile
 from collections import Counter
 from pathlib import Path
 
 from tqdm import tqdm
 
-from .shard_format import ERRORS_FILE, REBUILD_MANIFEST, decode_frames, read_manifest
+from .shard_format import ERRORS_FILE, REBUILD_MANIFEST, decode_frames, frames_member, read_manifest, read_samples
 
 
 def check_shard(path: Path, expected: dict) -> list[str]:
@@ -30,24 +30,19 @@ def check_shard(path: Path, expected: dict) -> list[str]:
     if hashlib.sha256(data).hexdigest() != expected["sha256"]:
         problems.append(f"{path.name}: SHA-256 differs from the manifest")
     try:
-        members: dict[str, dict[str, bytes]] = {}
-        with tarfile.open(path) as tar:
-            for member in tar:
-                key, extension = member.name.split(".", 1)
-                members.setdefault(key, {})[extension] = tar.extractfile(member).read()
-        frames = 0
-        for key, files in members.items():
-            metadata = json.loads(files["json"])
-            frames_extension = next(e for e in files if e != "json")
-            stored = len(decode_frames(files[frames_extension], frames_extension))
+        clips, frames = 0, 0
+        for sample in read_samples(io.BytesIO(data), path.name):
+            metadata = json.loads(sample["json"])
+            extension, member = frames_member(sample)
+            stored = len(decode_frames(member, extension))
             if stored != metadata["num_frames"]:
-                problems.append(f"{path.name}: clip {key} stores {stored} frames, "
+                problems.append(f"{path.name}: clip {sample['__key__']} stores {stored} frames, "
                                 f"its JSON says {metadata['num_frames']}")
-            frames += stored
-    except (tarfile.TarError, KeyError, StopIteration, ValueError) as error:
+            clips, frames = clips + 1, frames + stored
+    except (KeyError, ValueError) as error:  # read_samples names a broken tar with a ValueError
         return problems + [f"{path.name}: unreadable ({type(error).__name__}: {error})"]
-    if len(members) != expected["clips"] or frames != expected["frames"]:
-        problems.append(f"{path.name}: {len(members)} clips and {frames} frames, manifest says "
+    if clips != expected["clips"] or frames != expected["frames"]:
+        problems.append(f"{path.name}: {clips} clips and {frames} frames, manifest says "
                         f"{expected['clips']} and {expected['frames']}")
     return problems
 

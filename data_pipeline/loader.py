@@ -59,7 +59,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from webdataset.utils import pytorch_worker_info
 
 from .sampling import gaps_of, sample_indices
-from .shard_format import MANIFEST_FILE, decode_frames, read_manifest, read_samples
+from .shard_format import MANIFEST_FILE, decode_frames, frames_member, read_manifest, read_samples
 
 VERIFY_HINT = "check the shards with `hauwm shards inspect DIR --verify` and rebuild the broken one"
 RESUME_HINT = "the checkpoints written so far are intact: resume with `--ckpt_path RUN/checkpoints/last.ckpt`"
@@ -122,15 +122,14 @@ def to_sequence(sample: dict, seq_len: int, k_max: int, rng: np.random.Generator
     try:
         metadata = json.loads(sample["json"])
         num_frames, label, clip_id = metadata["num_frames"], metadata["class_index"], metadata["id"]
-        extension = next(name for name in ("jpgs", "npy") if name in sample)
-    except (KeyError, TypeError, ValueError, StopIteration) as error:
-        what = "no frames member (.jpgs or .npy)" if isinstance(error, StopIteration) else f"{type(error).__name__}: {error}"
-        raise LoaderError(f"clip {sample['__key__']} of shard {sample['__url__']}: not a HAUWM clip ({what}); "
-                          f"{VERIFY_HINT}") from None
+        extension, member = frames_member(sample)
+    except (KeyError, TypeError, ValueError) as error:
+        raise LoaderError(f"clip {sample['__key__']} of shard {sample['__url__']}: not a HAUWM clip "
+                          f"({type(error).__name__}: {error}); {VERIFY_HINT}") from None
     indices = sample_indices(num_frames, seq_len, k_max, rng)  # int64 [L]
     if indices is None:
         return None
-    return {"frames_member": sample[extension], "extension": extension, "indices": indices,
+    return {"frames_member": member, "extension": extension, "indices": indices,
             "num_frames": num_frames, "label": label, "id": clip_id, "url": sample["__url__"]}
 
 

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from .sampling import gaps_of, sample_indices
-from .shard_format import MANIFEST_FILE, ShardDirError, decode_frames, read_manifest, read_samples
+from .shard_format import MANIFEST_FILE, ShardDirError, decode_frames, frames_member, read_manifest, read_samples
 
 SCALE, LABEL_HEIGHT, CAPTION_HEIGHT = 2, 14, 16
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # what cv2.imwrite writes here
@@ -47,16 +47,14 @@ def write_preview(directory: Path, out: Path, split: str | None = None, clips: i
             indices = sample_indices(metadata["num_frames"], length, k_max, rng)
             if indices is None:
                 continue
-            extension = next(e for e in files if e not in ("json", "__key__"))
-            rows.append((metadata, indices, decode_frames(files[extension], extension, indices)))
+            extension, member = frames_member(files)
+            rows.append((metadata, indices, decode_frames(member, extension, indices)))
             if len(rows) == clips:
                 break
-    except ValueError as error:  # a shard read_samples or decode_frames cannot read, named with what to do
-        raise ShardDirError(str(error)) from None
-    except (KeyError, StopIteration) as error:  # a tar of other members than a shard's
-        raise ShardDirError(f"split {split!r} in {directory}: clip {files['__key__']} is not a HAUWM clip (no "
-                            f"{error if isinstance(error, KeyError) else 'frames member'}); check the shards with "
-                            f"`hauwm shards inspect {directory} --verify`") from None
+    except (KeyError, ValueError) as error:  # a shard read_samples, frames_member or decode_frames cannot read
+        what = f"no {error} member" if isinstance(error, KeyError) else error
+        raise ShardDirError(f"split {split!r} in {directory}: {what}; check the shards with `hauwm shards inspect "
+                            f"{directory} --verify`") from None
     if not rows:
         raise ShardDirError(f"split {split!r} in {directory} has no clip with at least {length} frames")
     side = rows[0][2].shape[1] * SCALE

@@ -142,6 +142,15 @@ def open_writer(fileobj: BinaryIO) -> tarfile.TarFile:
     return tarfile.open(fileobj=fileobj, mode="w", format=tarfile.USTAR_FORMAT)
 
 
+def frames_member(sample: dict) -> tuple[str, bytes]:
+    """A clip's frames member as read_samples gives it: (its extension, `jpgs` or `npy`, and its bytes); a
+    ValueError if the sample has none."""
+    for extension in ENCODINGS.values():
+        if extension in sample:
+            return extension, sample[extension]
+    raise ValueError(f"clip {sample.get('__key__')!r} has no frames member (.{' or .'.join(ENCODINGS.values())})")
+
+
 def read_samples(stream: BinaryIO, source: str) -> Iterator[dict]:
     """A shard's clips in order, as webdataset samples: `{"__key__": id, "json": bytes, "jpgs" | "npy": bytes}`.
     Reads the tar as a stream (tarfile's "r|" mode: no seeking, so `pipe:` sources work); `source` names the
