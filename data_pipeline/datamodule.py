@@ -84,10 +84,14 @@ class ShardDataModule(lightning.LightningDataModule):
                 raise LoaderError(f"{error}; or train without validation (--trainer.limit_val_batches 0)") from None
             clips, sequences = sum(val_shards.eligible(hp.seq_len)), world_size * len(self.val_set) * hp.batch_size
             if clips < sequences:  # fine for the per-k metrics (each repeat has other gaps); worth knowing
+                streams = world_size * self.val_set.workers  # each reads whole batches, at least one
+                per_stream = clips // (streams * hp.batch_size)
+                remedy = (f"--data.val_batches {per_stream * self.val_set.workers} reads no more sequences than there are "
+                          "clips" if per_stream else "fewer workers (--data.num_workers) or a smaller --data.batch_size "
+                          "read fewer")
                 rank_zero_info(f"validation reads {sequences} sequences ({world_size} rank{'s' * (world_size > 1)} × "
-                               f"{len(self.val_set)} batches of {hp.batch_size}) from {clips} clips of at least {hp.seq_len} frames, so clips "
-                               f"repeat within an evaluation, with other gaps; --data.val_batches "
-                               f"{max(1, clips // (world_size * hp.batch_size))} reads each at most once")
+                               f"{len(self.val_set)} batches of {hp.batch_size}) from {clips} clips of at least "
+                               f"{hp.seq_len} frames, so clips repeat within an evaluation, with other gaps; {remedy}")
 
     def train_dataloader(self):
         if self.trainer is not None and not any(isinstance(c, SetEpoch) for c in self.trainer.callbacks):

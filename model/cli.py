@@ -73,18 +73,20 @@ def not_an_advert(record: logging.LogRecord) -> bool:
 
 
 def checkpoint_dir(root_dir: str | None) -> Path:
-    """Where a fit in `trainer.default_root_dir` keeps its checkpoints (last.ckpt among them)."""
-    return Path(root_dir or ".") / "checkpoints"
+    """Where a fit in `trainer.default_root_dir` keeps its checkpoints (last.ckpt among them); `~` expanded, as
+    Lightning does."""
+    return Path(root_dir or ".").expanduser() / "checkpoints"
 
 
 def last_checkpoint(trainer_config) -> Path:
-    """Where a fit's last.ckpt is: in the directory its config's ModelCheckpoint names (`dirpath`), or in
+    """Where a fit's last.ckpt is: in the directory its config's save-last ModelCheckpoint names (`dirpath`), or in
     checkpoint_dir(trainer.default_root_dir), where the fit puts it otherwise."""
     for callback in trainer_config.get("callbacks") or []:
         init_args = getattr(callback, "init_args", None)
-        dirpath = init_args.get("dirpath") if init_args is not None else None
-        if names_a_model_checkpoint(callback) and dirpath:
-            return Path(dirpath) / "last.ckpt"
+        if init_args is None or not names_a_model_checkpoint(callback) or not init_args.get("save_last"):
+            continue
+        if init_args.get("dirpath"):
+            return Path(init_args["dirpath"]).expanduser() / "last.ckpt"
     return checkpoint_dir(trainer_config["default_root_dir"]) / "last.ckpt"
 
 
@@ -200,6 +202,7 @@ def lightning_cli(args: list[str]):
                 print("hauwm pretrain: --trainer.enable_checkpointing false: the config's ModelCheckpoint is left "
                       "out, so this run writes no checkpoint and cannot be resumed", file=sys.stderr)
                 trainer.callbacks = [callback for callback in trainer.callbacks if callback not in checkpointers]
+            trainer.precision = trainer.precision or "32-true"  # None: Lightning's default
             if str(trainer.precision) not in PRECISIONS:  # half-precision weights: the step's float32 state breaks
                 raise ConfigError(f"--trainer.precision {trainer.precision}: a fit runs in {', '.join(PRECISIONS[::2])} "
                                   "(float32 weights, autocast for the rest; 16-mixed is the paper's)")

@@ -228,7 +228,13 @@ def test_images_are_found_and_resized_or_refused(capsys):
     assert main(["inspect", "other/chw84-v0", "--task", "dmc_cheetah_run", "--no-progress"]) == 2  # not its task
     assert "actions have 4 dimensions, dmc_cheetah_run has 6" in capsys.readouterr().err
     assert main(["inspect", "other/chw84-v0", "--task", "cheetah"]) == 2
-    assert "--task cheetah has no Table 4 references" in capsys.readouterr().err
+    assert "--task cheetah is not one of the paper's tasks" in capsys.readouterr().err
+    robodesk = gymnasium.spaces.Box(-1.0, 1.0, (5,), np.float32)
+    write_foreign("other/desk-v0", chw, np.full((steps + 1, 3, 84, 84), 200, np.uint8), robodesk,
+                  np.zeros((steps, 5), np.float32))
+    assert main(["inspect", "other/desk-v0", "--task", "robodesk_push_green", "--no-progress"]) == 0
+    shown = capsys.readouterr().out  # a paper task, though Table 4's references do not normalise RoboDesk's reward
+    assert "task            robodesk_push_green" in shown and "normalised" not in shown
 
     pixels = gymnasium.spaces.Dict({"pixels": gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8),
                                     "state": gymnasium.spaces.Box(-1, 1, (5,), np.float64)})

@@ -153,6 +153,7 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--model.lr", "-1"], "model.lr must be positive"),
         (["--trainer.max_steps", "1", "--data.shards", "/nonexistent/shards"], "/nonexistent/shards does not exist"),
         (["--trainer.precision", "bf16-true"], "--trainer.precision bf16-true: a fit runs in 32-true, 16-mixed, bf16-mixed"),
+        (["--trainer.precision", "null", "--data.k_max", "0"], "k_max"),  # no precision is Lightning's 32-true
         (["--trainer.accumulate_grad_batches", "2"], "accumulate_grad_batches 2: the step optimises by itself"),
         (["--trainer.gradient_clip_val", "1"], "the step clips its own gradients: set --model.grad_clip"),
     ],
@@ -209,13 +210,18 @@ def test_a_resume_that_changes_a_model_setting_is_refused(built_shards, tiny_run
     assert (tmp_path / "checkpoints" / "last.ckpt").read_bytes() == (tiny_run / "checkpoints" / "last.ckpt").read_bytes()
 
 
-def test_ckpt_path_last_reads_the_directory_the_configs_model_checkpoint_names(built_shards, tmp_path, capsys):
-    elsewhere = tmp_path / "shared" / "ckpts"
+def test_ckpt_path_last_reads_the_directory_the_configs_model_checkpoint_names(built_shards, tmp_path, capsys,
+                                                                              monkeypatch):
+    """The save-last ModelCheckpoint's dirpath (`~` expanded, as Lightning does), not another checkpoint's."""
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    elsewhere = tmp_path / "home" / "ckpts"
     overlay = tmp_path / "dirpath.yaml"
     overlay.write_text(yaml.safe_dump({"trainer": {"callbacks": [
         {"class_path": "data_pipeline.SetEpoch"},
+        {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",  # snapshots, no last.ckpt
+         "init_args": {"dirpath": str(tmp_path / "snapshots"), "every_n_train_steps": 1}},
         {"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-         "init_args": {"dirpath": str(elsewhere), "save_last": True, "enable_version_counter": False}}]}}))
+         "init_args": {"dirpath": "~/ckpts", "save_last": True, "enable_version_counter": False}}]}}))
     assert fit(built_shards, tmp_path / "run", "--config", str(overlay), "--trainer.max_steps", "2", "--ckpt_path",
                "last") == 0
     assert f"no {elsewhere / 'last.ckpt'} yet, starting at step 0" in capsys.readouterr().err
