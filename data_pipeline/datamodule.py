@@ -82,10 +82,10 @@ class ShardDataModule(lightning.LightningDataModule):
                                                batches_per_worker=max(1, hp.val_batches // max(1, workers)), **common)
             except LoaderError as error:
                 raise LoaderError(f"{error}; or train without validation (--trainer.limit_val_batches 0)") from None
-            clips, sequences = sum(val_shards.eligible(hp.seq_len)), world_size * len(self.val_set) * hp.batch_size
+            clips = sum(val_shards.eligible(hp.seq_len))
+            sequences = self.val_set.streams * self.val_set.batches_per_worker * hp.batch_size  # all ranks' together
             if clips < sequences:  # fine for the per-k metrics (each repeat has other gaps); worth knowing
-                streams = world_size * self.val_set.workers  # each reads whole batches, at least one
-                per_stream = clips // (streams * hp.batch_size)
+                per_stream = clips // (self.val_set.streams * hp.batch_size)  # each stream reads whole batches
                 remedy = (f"--data.val_batches {per_stream * self.val_set.workers} reads no more sequences than there are "
                           "clips" if per_stream else "fewer workers (--data.num_workers) or a smaller --data.batch_size "
                           "read fewer")

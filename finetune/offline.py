@@ -27,8 +27,8 @@ from finetune.config import FinetuneConfig
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
-from finetune.train import (CHECKPOINT, FinetuneError, close_window, evaluate, exclusive, keep_best, load_dataset,
-                            next_multiple, save_checkpoint, start_run, task_env)
+from finetune.train import (CHECKPOINT, FinetuneError, close_window, exclusive, keep_best, load_dataset, next_multiple,
+                            save_checkpoint, start_run, task_env, timed_evaluation)
 from finetune.world_model import Latent
 
 
@@ -85,11 +85,7 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
             bar.set_postfix(model_loss=f"{metrics['model_loss']:.1f}", u=f"{metrics['penalty_u_imagined']:.3g}")
             counters["next_log"] = next_multiple(updates, cfg.log_every)
         if updates >= counters["next_eval"] or updates >= cfg.steps:
-            started = time.perf_counter()
-            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=cfg.seed + 10_000 + updates,
-                                 progress=progress)
-            window["time"] += time.perf_counter() - started  # updates/s counts updates, not the evaluation
-            bar.unpause()  # and so does the bar's rate
+            last_eval = timed_evaluation(agent, eval_env, cfg, cfg.seed + 10_000 + updates, window, bar, progress)
             logger.write("eval", updates, last_eval)
             keep_best(Path(cfg.logdir), agent, cfg, counters, fingerprint, last_eval, updates)
             bar.write(f"eval at {updates} updates: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))

@@ -307,6 +307,16 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
     return result
 
 
+def timed_evaluation(agent: Agent, eval_env, cfg: FinetuneConfig, seed: int | None, window: dict, bar: tqdm,
+                     progress: bool) -> dict[str, float]:
+    """A run's scheduled `evaluate`, its time left out of the log window's updates/s and the progress bar's rate."""
+    started = time.perf_counter()
+    result = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=seed, progress=progress)
+    window["time"] += time.perf_counter() - started
+    bar.unpause()
+    return result
+
+
 def keep_best(logdir: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: str,
               result: dict[str, float], step: int) -> None:
     """Save the agent to logdir/BEST when evaluation `result` (at `step`) has the run's highest mean return so
@@ -548,10 +558,7 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
             train_due()  # evaluations and checkpoints see every update due so far, also with parallel envs
         if eval_due:
             eval_seed = cfg.seed + 10_000 + counters["env_step"] if reseed else None
-            started = time.perf_counter()
-            last_eval = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=eval_seed, progress=progress)
-            window["time"] += time.perf_counter() - started  # updates/s counts acting and updates, not evaluation
-            bar.unpause()  # and so does the bar's rate
+            last_eval = timed_evaluation(agent, eval_env, cfg, eval_seed, window, bar, progress)
             logger.write("eval", counters["env_step"], last_eval)
             keep_best(checkpoint.parent, agent, cfg, counters, fingerprint, last_eval, counters["env_step"])
             bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))

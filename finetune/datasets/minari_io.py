@@ -374,8 +374,9 @@ def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
     """Concatenate the episodes of `source_ids` into a new dataset `out_id` (e.g. medium replay + expert).
 
     The sources must agree on the task and the env settings they were collected with (where they say; the
-    new dataset records what those that say agree on, also when a source made elsewhere says nothing); the new dataset is JPEG-encoded only if every source is (JPEG frames are decoded and encoded again),
-    and keeps success flags only if every source has them.
+    new dataset records what those that say agree on, also when a source made elsewhere says nothing); the
+    new dataset is JPEG-encoded only if every source is (JPEG frames are decoded and encoded again), and keeps
+    success flags only if every source has them.
     """
     if len(source_ids) < 2:
         raise DatasetError("merge needs at least two datasets")

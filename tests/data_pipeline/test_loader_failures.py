@@ -39,14 +39,22 @@ def truncate(shard) -> None:
     shard.write_bytes(shard.read_bytes()[: shard.stat().st_size // 3])  # cut inside a member
 
 
-def garble_frames(shard) -> None:
-    """Replace the JPEGs of every clip of the shard by zeros, keeping each frames member's table of lengths."""
+def rewrite_clips(shard, change) -> None:
+    """Rewrite the shard with `change(index, metadata, frames) -> (metadata, frames)` applied to each clip."""
     with tarfile.open(shard) as tar:
         members = [tar.extractfile(member).read() for member in tar]  # per clip: <id>.jpgs, then <id>.json
     with open(shard, "wb") as file, open_writer(file) as tar:
-        for frames, metadata in zip(members[0::2], members[1::2]):
-            table = 4 * (int.from_bytes(frames[:4], "little") + 1)
-            add_clip(tar, json.loads(metadata), frames[:table] + bytes(len(frames) - table), "jpgs")
+        for index, (frames, metadata) in enumerate(zip(members[0::2], members[1::2])):
+            add_clip(tar, *change(index, json.loads(metadata), frames), "jpgs")
+
+
+def garble_frames(shard) -> None:
+    """Replace the JPEGs of every clip of the shard by zeros, keeping each frames member's table of lengths."""
+    def zeroed(index, metadata, frames):
+        table = 4 * (int.from_bytes(frames[:4], "little") + 1)
+        return metadata, frames[:table] + bytes(len(frames) - table)
+
+    rewrite_clips(shard, zeroed)
 
 
 @pytest.mark.parametrize("workers", [2, 0])
@@ -79,14 +87,10 @@ def empty(shard) -> None:
 
 def drop_num_frames(shard) -> None:
     """Rewrite the shard with its first clip's metadata lacking `num_frames`."""
-    with tarfile.open(shard) as tar:
-        members = [(member.name, tar.extractfile(member).read()) for member in tar]
-    with open(shard, "wb") as file, open_writer(file) as tar:
-        for i in range(0, len(members), 2):
-            metadata = json.loads(members[i + 1][1])
-            if i == 0:
-                del metadata["num_frames"]
-            add_clip(tar, metadata, members[i][1], "jpgs")
+    def without(index, metadata, frames):
+        return ({key: value for key, value in metadata.items() if index or key != "num_frames"}, frames)
+
+    rewrite_clips(shard, without)
 
 
 @pytest.mark.parametrize("workers", [0, 2])
