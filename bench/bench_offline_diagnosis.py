@@ -46,7 +46,7 @@ MODEL_METRICS = ("model_loss", "recon_nll", "reward_nll", "kl")
 
 
 class Fixed:
-    """What WorldModel.imagine asks of a policy (a distribution with rsample and entropy), for given actions."""
+    """What DualStreamWorldModel.imagine asks of a policy (a distribution with rsample and entropy), for given actions."""
 
     def __init__(self, action: torch.Tensor):
         self.action = action  # [N, A]

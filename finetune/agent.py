@@ -23,7 +23,7 @@ from torch import nn
 
 from finetune.behavior import ActorCritic
 from finetune.config import FinetuneConfig
-from finetune.world_model import Latent, RewardFn, WorldModel, no_param_grads
+from finetune.world_model import DualStreamWorldModel, Latent, RewardFn, no_param_grads
 
 COMPILE_MODES = ("default", "reduce-overhead")
 
@@ -39,7 +39,7 @@ class Agent(nn.Module):
     def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: nn.Module | None = None,
                  k1_embedding: torch.Tensor | None = None):
         super().__init__()
-        self.world_model = WorldModel(cfg, action_dim, frozen, k1_embedding)
+        self.world_model = DualStreamWorldModel(cfg, action_dim, frozen, k1_embedding)
         self.behavior = ActorCritic(
             self.world_model.feature_dim, action_dim, cfg.units, cfg.horizon, cfg.gamma, cfg.lam, cfg.actor_lr,
             cfg.critic_lr, cfg.entropy_scale, cfg.target_fraction, cfg.grad_clip, layer_norm=cfg.layer_norm)

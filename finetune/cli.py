@@ -107,10 +107,11 @@ def evaluate_run(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from finetune.config import ConfigError, load_config, parse_override
+    from finetune.config import load_config, parse_override
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
     from finetune.train import CHECKPOINT, FinetuneError
+    from model.config import ConfigError
 
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "evaluate":

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import yaml
 
+from model.config import ConfigError
+
 PARADIGMS = ("online", "offline", "imitation")
 PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
 # settings that take one of a few words
@@ -44,10 +46,6 @@ RANGES: tuple[tuple[tuple[str, ...], str, Callable[[float], bool]], ...] = (
     (("target_fraction",), "in (0, 1]", lambda v: 0 < v <= 1),
     (("demo_fraction",), "strictly between 0 and 1", lambda v: 0 < v < 1),
 )
-
-
-class ConfigError(ValueError):
-    pass
 
 
 @dataclass

@@ -67,7 +67,7 @@ class MixedReplay:
 
 
 class RecordedActions:
-    """A policy for WorldModel.imagine that plays recorded actions [H, N, A], one step per call: it is its own
+    """A policy for DualStreamWorldModel.imagine that plays recorded actions [H, N, A], one step per call: it is its own
     action distribution, whose sample is the recorded action and whose entropy is 0."""
 
     def __init__(self, actions: torch.Tensor):

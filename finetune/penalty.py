@@ -4,7 +4,7 @@
 
 u is read off the M prior heads of the new action-conditioned stream, N(μ_i, σ_i²) for i = 1..M, which all
 predict s̃_{t+1} from (s̃_t, a_t), and off s̃_{t+1} itself (the sample imagination drew, one random head per
-step: WorldModel.next_stoch). Three choices (`penalty`), LOMPO's three, reduced over the latent dims S:
+step: DualStreamWorldModel.next_stoch). Three choices (`penalty`), LOMPO's three, reduced over the latent dims S:
 
     loglik_std         u = std_i [ log N(s̃_{t+1}; μ_i, σ_i²) ]     (LOMPO's default; population std over heads)
     max_std            u = max_i ‖σ_i‖₂                           (LOMPO's max_var, MOPO's penalty)
@@ -29,7 +29,7 @@ import math
 
 import torch
 
-from finetune.world_model import Latent, Rollout, WorldModel
+from finetune.world_model import DualStreamWorldModel, Latent, Rollout
 from model.losses import disagreement
 from model.rssm import RSSMState
 
@@ -53,7 +53,7 @@ class PenalisedReward:
     each call, since compiled code guards on the keys of a dict it finds filled in (a dict that grew after the
     first update would compile the imagination again)."""
 
-    def __init__(self, world_model: WorldModel, kind: str, scale: float, frozen_weight: float):
+    def __init__(self, world_model: DualStreamWorldModel, kind: str, scale: float, frozen_weight: float):
         self.world_model, self.kind, self.scale, self.frozen_weight = world_model, kind, scale, frozen_weight
         self.metrics: dict[str, torch.Tensor] = {}
         self.imagined_metrics: dict[str, torch.Tensor] = {}

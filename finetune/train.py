@@ -30,10 +30,11 @@ import yaml
 from tqdm import tqdm
 
 from finetune.agent import Agent, resolve_compile
-from finetune.config import ConfigError, FinetuneConfig, load_config, step_unit
+from finetune.config import FinetuneConfig, load_config, step_unit
 from finetune.logger import Logger
 from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
+from model.config import ConfigError
 from model.export import WEIGHTS_FILE, torch_load_failure
 
 CHECKPOINT = "checkpoint.pt"

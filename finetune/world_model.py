@@ -53,7 +53,7 @@ from torch import nn
 from finetune.behavior import ADAM_EPS, mlp
 from finetune.config import FinetuneConfig
 from model.config import WorldModelConfig
-from model.losses import gaussian_kl, reconstruction_nll
+from model.losses import kl_halves, reconstruction_nll
 from model.networks import Decoder, Encoder, preprocess
 from model.rssm import EnsembleRSSM, RSSMState
 
@@ -99,7 +99,7 @@ def no_param_grads(*modules: nn.Module) -> Iterator[None]:
             p.requires_grad_(True)
 
 
-class WorldModel(nn.Module):
+class DualStreamWorldModel(nn.Module):
     def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: nn.Module | None, k1_embedding: torch.Tensor | None):
         """`frozen`: the FrozenWorldModel from `finetune.load_pretrained` (None: scratch baseline) and its
         k = 1 temporal embedding [cond_dim]."""
@@ -134,7 +134,7 @@ class WorldModel(nn.Module):
                 f"leave deter/stoch unset in the config (they default to the export's sizes)")
         return copy.deepcopy(frozen.decoder).requires_grad_(True).train()  # a trainable copy; the export stays frozen
 
-    def train(self, mode: bool = True) -> WorldModel:
+    def train(self, mode: bool = True) -> DualStreamWorldModel:
         super().train(mode)
         if self.frozen is not None:
             self.frozen.eval()  # the export stays in eval mode whatever the agent does
@@ -199,9 +199,8 @@ class WorldModel(nn.Module):
             reward_nll = 0.5 * (self.reward(feat).squeeze(-1) - batch["reward"]).pow(2).mean()
         else:  # imitation: no environment reward is ever learned from
             reward_nll = feat.new_zeros(())
-        # every head against the posterior, averaged over heads (and batch and time): [M, B, L] → scalar
-        kl_prior = gaussian_kl(post_mean.detach(), post_std.detach(), prior_mean, prior_std).mean()  # trains the prior
-        kl_post = gaussian_kl(post_mean, post_std, prior_mean.detach(), prior_std.detach()).mean()  # regularises q
+        # every head against the posterior, averaged over heads, batch and time ([M, B, L] → scalar), then free nats
+        kl_prior, kl_post = (half.mean() for half in kl_halves(post_mean, post_std, prior_mean, prior_std))
         kl = self.kl_balance * kl_prior.clamp(min=self.free_nats) + (1 - self.kl_balance) * kl_post.clamp(min=self.free_nats)
         loss = recon_nll + reward_nll + self.kl_scale * kl
         metrics = {"model_loss": loss, "recon_nll": recon_nll, "reward_nll": reward_nll, "kl": kl_post}

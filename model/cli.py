@@ -58,7 +58,7 @@ def refuse_flat_sizes(args: list[str]) -> None:
 def refuse_other_frame_size(shards: str | Path, flag: str) -> None:
     """Refuse (ConfigError) a shard directory whose frames are not the 64×64 the world model's CNNs read."""
     from data_pipeline.shard_format import read_manifest
-    from model.module import ConfigError
+    from model.config import ConfigError
     from model.networks import IMAGE_SHAPE
 
     size, side = read_manifest(shards)["settings"]["size"], IMAGE_SHAPE[-1]
@@ -116,7 +116,8 @@ def lightning_cli(args: list[str]):
     from model.config import WorldModelConfig
     from model.export import checkpoint_world_model, read_checkpoint
     from model.interrupt import FitInterrupted, ResumeNotice
-    from model.module import ConfigError, PretrainModule, refuse_other_size
+    from model.config import ConfigError
+    from model.module import PretrainModule, refuse_other_size
     from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
     from model.progress import StepProgressBar
 
@@ -314,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     from data_pipeline.shard_format import ShardDirError
     from model.export import ExportError
     from model.interrupt import FitInterrupted
-    from model.module import ConfigError
+    from model.config import ConfigError
 
     command = argv[0]
     try:

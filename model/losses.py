@@ -16,16 +16,27 @@ def gaussian_kl(mean_q: torch.Tensor, std_q: torch.Tensor, mean_p: torch.Tensor,
     return 0.5 * (var_ratio + mahalanobis - 1.0 - var_ratio.log()).sum(-1)
 
 
+def kl_halves(
+    post_mean: torch.Tensor, post_std: torch.Tensor, prior_mean: torch.Tensor, prior_std: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two halves of KL balancing (DreamerV2), each [M, B, L] for M prior heads against the posterior q.
+
+    KL(sg(q) ‖ p_i) trains the prior heads; KL(q ‖ sg(p_i)) regularises the posterior. Both have the plain KL's value.
+    """
+    kl_prior = gaussian_kl(post_mean.detach(), post_std.detach(), prior_mean, prior_std)
+    kl_post = gaussian_kl(post_mean, post_std, prior_mean.detach(), prior_std.detach())
+    return kl_prior, kl_post
+
+
 def balanced_kl(
     post_mean: torch.Tensor, post_std: torch.Tensor, prior_mean: torch.Tensor, prior_std: torch.Tensor, balance: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """KL balancing (DreamerV2) of every head against the posterior, averaged over heads → (balanced [B, L], KL [B, L]).
+    """KL balancing of every head against the posterior, averaged over heads → (balanced [B, L], KL [B, L]).
 
     balanced = balance · KL(sg(q) ‖ p_i) + (1 − balance) · KL(q ‖ sg(p_i)): the prior heads move toward the
-    posterior faster than the posterior toward them. Both parts have the same value, the plain KL.
+    posterior faster than the posterior toward them.
     """
-    kl_prior = gaussian_kl(post_mean.detach(), post_std.detach(), prior_mean, prior_std)  # [M, B, L]
-    kl_post = gaussian_kl(post_mean, post_std, prior_mean.detach(), prior_std.detach())  # [M, B, L]
+    kl_prior, kl_post = kl_halves(post_mean, post_std, prior_mean, prior_std)  # [M, B, L] each
     return (balance * kl_prior + (1.0 - balance) * kl_post).mean(0), kl_prior.detach().mean(0)
 
 

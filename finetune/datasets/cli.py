@@ -240,11 +240,11 @@ def list_(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from finetune.config import ConfigError
     from finetune.datasets.minari_io import DatasetError, KeptOnInterrupt
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
     from finetune.train import FinetuneError
+    from model.config import ConfigError
 
     args = parser().parse_args(sys.argv[1:] if argv is None else argv)
     try:

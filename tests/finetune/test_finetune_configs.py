@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from finetune.config import ConfigError, load_config, parse_override
+from finetune.config import load_config, parse_override
 from finetune.envs import PAPER_TASKS
+from model.config import ConfigError
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "finetune"
 

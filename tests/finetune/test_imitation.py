@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from finetune.config import ConfigError
+from model.config import ConfigError
 from finetune.discriminator import Discriminator
 from finetune.imitation import ImitationAgent, train_imitation
 from finetune.envs import make_env

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from finetune.config import ConfigError
+from model.config import ConfigError
 from finetune.offline import OfflineAgent, train_offline
 from finetune.penalty import PenalisedReward, uncertainty
 from model.losses import disagreement
@@ -166,9 +166,9 @@ def test_the_frozen_disagreement_term_gives_the_actor_no_gradient(export_dir, ti
 
 @pytest.mark.parametrize("rule", ["random", "mean"])
 def test_imagination_draws_the_next_latent_from_one_head_per_trajectory_or_from_their_mean(tiny_config, rule):
-    from finetune.world_model import WorldModel
+    from finetune.world_model import DualStreamWorldModel
 
-    world_model = WorldModel(tiny_config(agent="scratch", model_heads=4, imagine_heads=rule, deter=8, stoch=3), 2,
+    world_model = DualStreamWorldModel(tiny_config(agent="scratch", model_heads=4, imagine_heads=rule, deter=8, stoch=3), 2,
                              None, None)
     mean = torch.arange(4.0)[:, None, None].expand(4, 50, 3).clone()  # head i predicts i everywhere
     sample = world_model.next_stoch(mean, torch.full_like(mean, 1e-6))  # [50, 3]

@@ -15,7 +15,8 @@ from torch.utils.data import DataLoader
 
 from model.config import WorldModelConfig
 from model.losses import gaussian_kl, k_scaled_disagreement
-from model.module import ConfigError, PretrainModule
+from model.config import ConfigError
+from model.module import PretrainModule
 
 
 def test_lambda_grows_while_the_ensemble_is_too_certain_and_shrinks_once_it_is_not(small_sizes):
