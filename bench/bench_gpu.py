@@ -67,7 +67,7 @@ from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.datamodule import ShardDataModule  # noqa: E402
 from data_pipeline.loader import WORKER_PRIORITIES, SequenceDataset, shard_set  # noqa: E402
 from data_pipeline.shard_format import MANIFEST_FILE, ShardDirError, read_manifest  # noqa: E402
-from model.cli import lightning_cli  # noqa: E402
+from model.lightning_cli import lightning_cli  # noqa: E402
 from model.config import WorldModelConfig  # noqa: E402
 from model.module import PretrainModule, compiled, step_unless  # noqa: E402
 
