@@ -10,6 +10,9 @@ with an input-space gradient penalty (Gulrajani et al. 2017, as DAC uses for adv
     L_D = − E_expert[log D] − E_policy[log(1 − D)] + c · E_x̂[(‖∇_x̂ ℓ_ψ(x̂)‖₂ − 1)²],
     x̂ = α x_expert + (1 − α) x_policy,  α ~ U(0, 1)                                    (c = disc_gp_scale, 10)
 
+Eq. 5 as printed puts max_D in front of E_expert[−log D] + E_policy[−log(1 − D)], which has no finite maximum
+(D → 0 on the expert's pairs); it is read as the usual GAIL game, D minimising those two terms (L_D above).
+
 VMAIL's code takes its "gradient penalty" with respect to D's parameters; this one is taken with respect to
 D's input, which is what bounds how fast D (and so the policy's reward) can change along the latent space.
 

@@ -10,7 +10,8 @@ what to do.
 `k1_embedding(model)` builds the conditioning of the frozen stream, Δt^e_{k=1}, the way pre-training
 built embeddings: the relative mode encodes k = 1 at position 1 / T · reference_length; fine-tuning has
 no source clip, so T defaults to the reference length (position 1, the same vector as the absolute
-mode's E[1]); `k1_clip_length` in the fine-tuning config sets another T.
+mode's E[1]); `k1_clip_length` in the fine-tuning config sets another T. The first step of a sequence
+(from the zero state) gets `gap_embedding(model, 0)` instead, as in pre-training.
 """
 
 from __future__ import annotations
@@ -58,8 +59,14 @@ def _check_convention(config: dict, path: Path) -> None:
                               f"{NORMALISATION['formula']}")
 
 
-def k1_embedding(model: FrozenWorldModel, clip_length: float | None = None) -> torch.Tensor:
-    """Δt^e_{k=1} → [temporal_dim]; `clip_length` is T of the relative mode (default: the reference length)."""
+def gap_embedding(model: FrozenWorldModel, gap: int, clip_length: float | None = None) -> torch.Tensor:
+    """Δt^e_k for the gap k → [temporal_dim]; `clip_length` is T of the relative mode (default: the reference
+    length). k = 0 is what every pre-training sequence began with (its first frame has no gap before it)."""
     clip_length = model.temporal.reference_length if clip_length is None else clip_length
     with torch.no_grad():
-        return model.temporal(torch.ones(()), torch.tensor(float(clip_length))).float()
+        return model.temporal(torch.tensor(float(gap)), torch.tensor(float(clip_length))).float()
+
+
+def k1_embedding(model: FrozenWorldModel, clip_length: float | None = None) -> torch.Tensor:
+    """Δt^e_{k=1} → [temporal_dim]: the frozen stream's conditioning after the first step."""
+    return gap_embedding(model, 1, clip_length)

@@ -3,7 +3,8 @@
 Frozen stream (pre-trained encoder + ensemble RSSM, never updated), conditioned on the k = 1 temporal
 embedding plus Gaussian noise where an action would enter:
 
-    c_t  = Δt^e_{k=1} + ε_t,   ε_t ~ N(0, σ² I),  σ = 0.01
+    c_t  = Δt^e_{k=1} + ε_t,   ε_t ~ N(0, σ² I),  σ = 0.01      (Δt^e_{k=0} at a sequence's first step, from
+                                                                  the zero state, as every pre-training sequence began)
     ŝ_t  ~ q_θ(ŝ_t | ŝ_{t−1}, c_t, enc(o_t))                       (the export's posterior)
 
 New action-conditioned stream (trained from scratch, the same RSSM building block with one prior head):
@@ -52,6 +53,7 @@ from torch import nn
 
 from finetune.behavior import ADAM_EPS, mlp
 from finetune.config import FinetuneConfig
+from finetune.pretrained import gap_embedding
 from model.config import WorldModelConfig
 from model.losses import kl_halves, reconstruction_nll
 from model.networks import Decoder, Encoder, preprocess
@@ -108,6 +110,7 @@ class DualStreamWorldModel(nn.Module):
         self.noise_std = cfg.noise_std
         if frozen is not None:
             self.register_buffer("k1_embedding", k1_embedding.float().clone())
+            self.register_buffer("start_embedding", gap_embedding(frozen, 0), persistent=False)  # from the export
             self.encoder = None  # the frozen one is used
             posterior_input = frozen.rssm.feature_dim
         else:
@@ -157,8 +160,16 @@ class DualStreamWorldModel(nn.Module):
 
     def frozen_cond(self, *shape: int) -> torch.Tensor:
         """c = Δt^e_{k=1} + N(0, σ²): the frozen stream's conditioning, fresh noise per call → [*shape, cond_dim]."""
-        k1 = self.k1_embedding.expand(*shape, -1)
-        return k1 + self.noise_std * torch.randn_like(k1)
+        return self.with_noise(self.k1_embedding.expand(*shape, -1))
+
+    def with_noise(self, embedding: torch.Tensor) -> torch.Tensor:
+        return embedding + self.noise_std * torch.randn_like(embedding)
+
+    def frozen_sequence_cond(self, batch: int, length: int) -> torch.Tensor:
+        """The conditioning of a filtered window [B, L, cond_dim]: Δt^e_{k=0} at its first step (the frozen stream
+        starts there from the zero state, like every pre-training sequence), Δt^e_{k=1} after; plus noise."""
+        first = self.start_embedding.expand(batch, 1, -1)
+        return self.with_noise(torch.cat([first, self.k1_embedding.expand(batch, length - 1, -1)], 1))
 
     def conv_precision(self) -> contextlib.AbstractContextManager:
         """bf16 autocast for the convolutional encoder and decoder when `conv_bf16` is set (a no-op otherwise)."""
@@ -179,7 +190,7 @@ class DualStreamWorldModel(nn.Module):
         images = preprocess(obs)
         if self.frozen is not None:
             with torch.no_grad():
-                frozen = self.frozen.rssm.observe(self.encode(images), self.frozen_cond(batch, length))
+                frozen = self.frozen.rssm.observe(self.encode(images), self.frozen_sequence_cond(batch, length))
             frozen_state = RSSMState(frozen.deter, frozen.stoch)
             posterior_input = self.frozen.rssm.feature(frozen_state)  # [B, L, F̂], F̂ = the export's feature_dim
         else:
@@ -225,7 +236,8 @@ class DualStreamWorldModel(nn.Module):
         """Filter one real step while acting: obs uint8 [B, 3, 64, 64], prev_action [B, A]."""
         images = preprocess(obs)
         if self.frozen is not None:
-            cond = self.frozen_cond(obs.shape[0])
+            first = (latent.frozen.deter == 0).all(-1, keepdim=True)  # [B, 1]: an episode's first step (the zero state)
+            cond = self.with_noise(torch.where(first, self.start_embedding, self.k1_embedding))
             frozen = self.frozen.rssm.obs_step(latent.frozen, cond, self.encode(images))[0]
             posterior_input = self.frozen.rssm.feature(frozen)
         else:

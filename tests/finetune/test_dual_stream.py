@@ -53,7 +53,8 @@ def test_updates_leave_frozen_parameters_bit_identical_and_change_every_new_one(
         assert not agent.world_model.frozen.training
 
 
-def test_frozen_stream_gets_the_k1_embedding_plus_sigma_noise(export_dir, tiny_config, monkeypatch):
+def test_frozen_stream_gets_the_k1_embedding_plus_sigma_noise_and_k0_at_the_first_step(export_dir, tiny_config,
+                                                                                        monkeypatch):
     torch.manual_seed(0)
     cfg = tiny_config(batch_size=16, seq_len=32)
     agent = make_agent(cfg, export_dir)
@@ -63,13 +64,35 @@ def test_frozen_stream_gets_the_k1_embedding_plus_sigma_noise(export_dir, tiny_c
     monkeypatch.setattr(frozen.rssm, "observe", lambda embeds, conds, *a, **k: seen.append(conds) or original(embeds, conds, *a, **k))
     agent.world_model.loss({k: torch.as_tensor(v) for k, v in random_batch(cfg, np.random.default_rng(1)).items()})
     conds = seen[0]  # [B, L, temporal_dim]
-    k1 = frozen.temporal(torch.ones(()), torch.tensor(frozen.temporal.reference_length))
+    reference = torch.tensor(frozen.temporal.reference_length)
+    k1, k0 = frozen.temporal(torch.ones(()), reference), frozen.temporal(torch.zeros(()), reference)
     assert conds.shape == (cfg.batch_size, cfg.seq_len, k1.shape[0])
-    noise = conds - k1
+    # the first step starts from the zero state with the gap-0 embedding, as every pre-training sequence did
+    assert (conds[:, 0] - k0).abs().max() < 0.1 and (conds[:, 0] - k1).abs().max() > 0.5
+    noise = conds[:, 1:] - k1
     assert noise.abs().max() > 0  # noise is there ...
     assert abs(noise.mean().item()) < 2e-3  # ... centred on the k = 1 embedding ...
     assert noise.std().item() == pytest.approx(0.01, rel=0.1)  # ... with σ = 0.01
-    assert not torch.allclose(conds[0, 0], conds[0, 1])  # fresh noise every step
+    assert not torch.allclose(conds[0, 1], conds[0, 2])  # fresh noise every step
+
+
+def test_acting_filters_an_episode_as_training_filters_a_window(export_dir, tiny_config, monkeypatch):
+    """The frozen and new streams' states while acting (one observe_step at a time from the initial state, with
+    restarts) equal those of filtering the same frames in one window: one conditioning rule for both."""
+    monkeypatch.setattr(torch, "randn_like", torch.zeros_like)  # posterior samples at their means: no RNG order
+    cfg = tiny_config(noise_std=0.0, batch_size=3, seq_len=5)
+    agent = make_agent(cfg, export_dir)
+    wm = agent.world_model
+    batch = {k: torch.as_tensor(v) for k, v in random_batch(cfg, np.random.default_rng(3)).items()}
+    batch["action"][:, 0] = 0  # entry 0 has no previous action, as in the replay
+    window, _ = wm.observe(batch["obs"], batch["action"])
+    latent, _ = agent.initial(cfg.batch_size)
+    latent = agent.restart(latent.map(torch.ones_like), torch.zeros(cfg.batch_size, ACTION_DIM),
+                           np.ones(cfg.batch_size, bool))[0]  # a restart gives the initial state back
+    for t in range(cfg.seq_len):
+        latent = wm.observe_step(latent, batch["action"][:, t], batch["obs"][:, t])
+        for stream, whole in ((latent.frozen, window.frozen), (latent.new, window.new)):
+            assert torch.allclose(stream.deter, whole.deter[:, t], atol=1e-5), t
 
 
 def test_imagination_advances_the_frozen_stream_with_its_ensemble_mean(export_dir, tiny_config):
