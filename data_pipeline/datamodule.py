@@ -35,15 +35,32 @@ class SetEpoch(lightning.Callback):
 
 
 class ShardDataModule(lightning.LightningDataModule):
-    def __init__(self, shards: str, train_split: str = "train", val_split: str = "validation", batch_size: int = 32,
-                 seq_len: int = 16, k_max: int = 5, num_workers: int = 2, shuffle_buffer: int = 256, seed: int = 0,
-                 val_batches: int = 8, shard_url: str | None = None, timeout: float = 600.0,
-                 worker_priority: str = "normal"):
-        """`shards`: a shard directory (with manifest.json). `shard_url`: optional URL template for the tars,
-        e.g. `"pipe:aws s3 cp s3://bucket/shards/{name} -"`, with the manifest copied to `shards`. `timeout`:
-        seconds a loader worker may take for one batch before the run stops with an error naming its shard.
-        `worker_priority`: `normal`, or `idle` for workers that use only the cores the training step leaves
-        free (Linux; for CPU-only runs on few cores, see `loader.check_worker_priority`)."""
+    def __init__(self, shards: str | None = None, train_split: str = "train", val_split: str = "validation",
+                 batch_size: int = 32, seq_len: int = 16, k_max: int = 5, num_workers: int = 2,
+                 shuffle_buffer: int = 256, seed: int = 0, val_batches: int = 8, shard_url: str | None = None,
+                 timeout: float = 600.0, worker_priority: str = "normal"):
+        """Batches of variable-gap sequences from a shard directory, for training and validation.
+
+        Args:
+            shards: the shard directory (with manifest.json), built by `hauwm shards build`; required
+            train_split: the split trained on
+            val_split: the split validated on
+            batch_size: sequences per batch (per rank)
+            seq_len: frames per sequence L
+            k_max: the largest gap K_max; gaps are k ~ U{1..K_max}
+            num_workers: loader worker processes per rank (0: in the training process)
+            shuffle_buffer: sequences shuffled across shards in each worker's buffer
+            seed: seed of the shuffles and gaps (each epoch reshuffles from seed + epoch)
+            val_batches: validation batches per rank
+            shard_url: URL template for the tars, e.g. `pipe:aws s3 cp s3://bucket/shards/{name} -`, with the
+                manifest copied to `shards`
+            timeout: seconds a loader worker may take for one batch before the run stops with an error naming
+                its shard
+            worker_priority: normal, or idle for workers that use only the cores the training step leaves free
+                (Linux; for CPU-only runs on few cores, see `loader.check_worker_priority`)
+        """
+        if not shards:
+            raise LoaderError("no shard directory: pass --data.shards DIR (built by `hauwm shards build`)")
         check_worker_priority(worker_priority)
         for name, value, least in (("num_workers", num_workers, 0), ("val_batches", val_batches, 1),
                                    ("batch_size", batch_size, 1), ("shuffle_buffer", shuffle_buffer, 0),

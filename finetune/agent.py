@@ -35,6 +35,10 @@ def resolve_compile(setting: str, device: torch.device) -> str | None:
     return None if setting == "off" else setting
 
 
+class DivergedError(FloatingPointError):
+    """The actor gave a non-finite action: the agent's weights (or the latents they make) went NaN or inf."""
+
+
 class Agent(nn.Module):
     def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: nn.Module | None = None,
                  k1_embedding: torch.Tensor | None = None):
@@ -134,7 +138,12 @@ class Agent(nn.Module):
         if self.compile_mode is not None:  # own copies: a CUDA graph's outputs are overwritten by its next run
             latent = latent.map(torch.Tensor.clone)
             action = action.clone()
-        return action.cpu().numpy(), latent, action
+        actions = action.cpu().numpy()
+        if not np.isfinite(actions).all():  # an env would take it (Meta-World even scores it as solved)
+            raise DivergedError("the actor gave a non-finite action (NaN or inf): the agent has diverged; lower "
+                                "actor_lr or model_lr, or set layer_norm: true, and start a new run (checkpoint.pt "
+                                "and best.pt hold the agent as last saved)")
+        return actions, latent, action
 
     def trainable_state_dict(self) -> dict[str, torch.Tensor]:
         """Everything but the frozen export (which comes back from --pretrained on resume)."""

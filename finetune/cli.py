@@ -2,7 +2,7 @@
 
     hauwm finetune --config configs/finetune/dmc_cheetah_run.yaml --pretrained exports/hauwm
     hauwm finetune --config configs/finetune/demo.yaml --pretrained DIR --steps 2000 --logdir runs/demo
-    hauwm finetune --config configs/finetune/dmc_cheetah_run.yaml --set agent=scratch   # baseline
+    hauwm finetune --config configs/finetune/dmc_cheetah_run.yaml --set agent=scratch --logdir runs/scratch/cheetah
     hauwm finetune offline --config configs/offline/metaworld_drawer_close.yaml --pretrained DIR --dataset ID
     hauwm finetune imitate --config configs/imitation/metaworld_drawer_close.yaml --pretrained DIR --demos ID
     hauwm finetune evaluate RUNDIR --pretrained DIR [--best] [--episodes 50]
@@ -53,8 +53,9 @@ def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
         p.add_argument(flag, dest=setting, metavar="ID", help="dataset id for finetune.datasets (a dataset written by "
                                                                f"`hauwm datasets collect`); overrides the config's {setting}")
     p.add_argument("--steps", type=int, help=f"{unit} budget (overrides the config)")
-    p.add_argument("--logdir", help="run directory: logs, checkpoint, replay (overrides the config)")
-    p.add_argument("--seed", type=int)
+    kept = "logs, checkpoint.pt, best.pt" + ("" if paradigm == "offline" else ", replay/")
+    p.add_argument("--logdir", help=f"run directory: {kept} (overrides the config)")
+    p.add_argument("--seed", type=int, help="the run's seed: weights, envs, sampling (overrides the config)")
     p.add_argument("--device", help="auto, cpu or cuda")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config setting, e.g. --set agent=scratch --set batch_size=16")
@@ -69,8 +70,8 @@ def evaluate_parser() -> argparse.ArgumentParser:
     p.add_argument("--pretrained", help="the export the run was trained on (not needed for agent=scratch runs)")
     p.add_argument("--best", action="store_true", help="play best.pt (the run's best evaluation) instead of its last checkpoint")
     p.add_argument("--episodes", type=int, help="episodes to play (default: the run's eval_episodes)")
-    p.add_argument("--seed", type=int, help="env seed of the first episode (default: the run's seed + 10^9, which no "
-                                             "training episode or evaluation of the run used)")
+    p.add_argument("--seed", type=int, help="env seed of the first episode (default: the run's seed + 10^9, apart from "
+                                             "the seeds of the run's training episodes and evaluations)")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
     return p
@@ -78,6 +79,7 @@ def evaluate_parser() -> argparse.ArgumentParser:
 
 def evaluate_run(argv: list[str]) -> int:
     """`hauwm finetune evaluate`: one line with the run's agent's returns over --episodes fresh episodes."""
+    from finetune.agent import DivergedError
     from finetune.pretrained import PretrainedError
     from finetune.train import (BEST, CHECKPOINT, HELD_OUT_SEED, FinetuneError, evaluate, load_trained, resolve_device,
                                 run_config, task_env)
@@ -97,7 +99,7 @@ def evaluate_run(argv: list[str]) -> int:
             cfg, agent, counters = load_trained(args.rundir, pretrained, env.action_space.shape[0],
                                                 resolve_device(args.device), checkpoint)
             result = evaluate(agent, env, episodes, cfg.task, seed=seed, progress=not args.no_progress)
-    except (FinetuneError, PretrainedError) as error:
+    except (DivergedError, FinetuneError, PretrainedError) as error:
         print(f"hauwm finetune evaluate: error: {error}", file=sys.stderr)
         return 2
     unit, key = step_unit(cfg.paradigm)
@@ -107,6 +109,7 @@ def evaluate_run(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from finetune.agent import DivergedError
     from finetune.config import load_config, parse_override
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
@@ -138,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr)
             pretrained = None
         result = _runner(paradigm)(cfg, pretrained, progress=not args.no_progress)
-    except (ConfigError, PretrainedError, FinetuneError, ReplayError) as error:
+    except (ConfigError, DivergedError, PretrainedError, FinetuneError, ReplayError) as error:
         print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # said below, once the run's frames (and its progress bar) are gone

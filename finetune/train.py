@@ -40,10 +40,10 @@ from model.export import WEIGHTS_FILE, torch_load_failure
 CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"  # the agent at its best evaluation so far (keep_best)
 LOCK = ".lock"
-ENV_SEED_STRIDE = 1_000_000  # env i of a run starts from seed + i · this (env 0: the seed a single env gets)
-HELD_OUT_SEED = 1_000_000_000  # `hauwm finetune evaluate` plays from the run's seed + this: an env seed none of
-#                                the run's training episodes (seed + episodes + i · ENV_SEED_STRIDE) or
-#                                evaluations (seed + 10,000 + step) reaches
+ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this (env 0: the seed a single env gets)
+HELD_OUT_SEED = 1_000_000_000  # `hauwm finetune evaluate` plays from the run's seed + this: an env seed the run's
+#                                fresh envs (seed + i · ENV_SEED_STRIDE) and evaluations (seed + 10,000 + step) never
+#                                reach (its reseeded episodes, `episode_seed`, only by a 1-in-2^32 chance)
 
 
 class FinetuneError(RuntimeError):
@@ -53,6 +53,13 @@ class FinetuneError(RuntimeError):
 def next_multiple(step: int, every: int) -> int:
     """The first multiple of `every` after `step` (the next log, evaluation or checkpoint)."""
     return (step // every + 1) * every
+
+
+def episode_seed(run_seed: int, env: int, episodes: int) -> int:
+    """The env seed of env `env`'s episode after `episodes` episodes of the run (a resumed or reseeded episode): a
+    number of its own for each (run seed, env, episodes), so that runs with neighbouring seeds never replay each
+    other's episodes (seed + episodes would: run 0's second episode would be run 1's first)."""
+    return int(np.random.SeedSequence([run_seed, env, episodes]).generate_state(1)[0])
 
 
 def resolve_device(name: str) -> torch.device:
@@ -461,8 +468,10 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     # a resumed run reseeds from its progress, so it does not replay the same random streams; with hooks.reseed
     # each episode is seeded from its index instead, in the envs of a fresh run. Env i of num_envs gets its own
     # seeds (env 0 a single env's).
-    progress_seed = 0 if hooks.reseed else counters["episodes"]
-    seeds = [cfg.seed + progress_seed + ENV_SEED_STRIDE * i for i in range(cfg.num_envs)]
+    if hooks.reseed or not counters["episodes"]:
+        seeds = [cfg.seed + ENV_SEED_STRIDE * i for i in range(cfg.num_envs)]
+    else:
+        seeds = [episode_seed(cfg.seed, i, counters["episodes"]) for i in range(cfg.num_envs)]
     eval_env = task_env(cfg, cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]))
     replay.load()
     logger = Logger(logdir)
@@ -471,8 +480,12 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     except EnvWorkerError as error:
         raise FinetuneError(f"task {cfg.task!r}: {error}") from None
     with closing_envs(envs):
-        return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, logdir / CHECKPOINT, fingerprint,
-                    progress, hooks.reseed)
+        try:
+            return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, logdir / CHECKPOINT,
+                        fingerprint, progress, hooks.reseed)
+        except EnvWorkerError as error:  # a worker died mid-run
+            raise FinetuneError(f"task {cfg.task!r}: {error}; the same command goes on from the run's last "
+                                "checkpoint.pt, if one was written") from None
 
 
 def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, replay: Replay, rng: np.random.Generator,
@@ -482,8 +495,8 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
 
     With several envs in worker processes, the updates due run while the workers step and render; with
     one env in this process, the loop runs one env step at a time, as a single env always did. With
-    `reseed`, every episode env i starts is reset with seed + episodes so far + ENV_SEED_STRIDE · i (and
-    its prefill sampler reseeded alike), and every evaluation with seed + 10,000 + env steps: with one env,
+    `reseed`, every episode env i starts is reset with episode_seed(seed, i, episodes so far) (and its
+    prefill sampler reseeded alike), and every evaluation with seed + 10,000 + env steps: with one env,
     a run resumed from a checkpoint taken at an episode's end continues exactly as an unbroken one.
     """
     parallel = cfg.num_envs > 1
@@ -494,7 +507,7 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
 
     def reseeded(starting: np.ndarray) -> np.ndarray:
         """Reset the envs where `starting` [N] is true with their episode seeds; all envs' frames [N, 3, 64, 64]."""
-        episode_seeds = [cfg.seed + counters["episodes"] + ENV_SEED_STRIDE * i for i in range(cfg.num_envs)]
+        episode_seeds = [episode_seed(cfg.seed, i, counters["episodes"]) for i in range(cfg.num_envs)]
         for i in np.flatnonzero(starting):
             samplers[i].seed(episode_seeds[i])
         return envs.reset(seed=episode_seeds, options={"reset_mask": starting})[0]

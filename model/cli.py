@@ -1,8 +1,9 @@
 """`hauwm pretrain …`: fit and validate (LightningCLI, model/lightning_cli.py), export, analyze.
 
-    hauwm pretrain fit --config configs/pretrain/ssv2.yaml [--data.shards DIR] [--trainer.max_steps N] ...
-    hauwm pretrain fit --config configs/pretrain/ssv2.yaml --ckpt_path RUN/checkpoints/last.ckpt   (resume)
-    hauwm pretrain validate --config ... --ckpt_path CKPT
+    hauwm pretrain fit --config configs/pretrain/ssv2.yaml --data.shards DIR [--trainer.max_steps N] ...
+    hauwm pretrain fit --config configs/pretrain/ssv2.yaml --data.shards DIR --ckpt_path last        (resume)
+    hauwm pretrain validate --config ... --data.shards DIR --ckpt_path CKPT
+    hauwm pretrain fit --help                                          (every --model/--data/--trainer flag)
     hauwm pretrain export CKPT --out DIR
     hauwm pretrain analyze --model DIR [--model DIR2] --shards DIR --out DIR
 

@@ -206,14 +206,15 @@ class PretrainCLI(LightningCLI):
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand]
-        if not config.data.shards:
-            raise ConfigError("no shard directory: pass --data.shards DIR (built by `hauwm shards build`)")
-        refuse_other_frame_size(config.data.shards, "--data.shards")  # and a missing or unfinished directory
+        if config.data.shards:  # none: ShardDataModule says what to pass
+            refuse_other_frame_size(config.data.shards, "--data.shards")  # and a missing or unfinished directory
         if config.ckpt_path and not Path(config.ckpt_path).is_file():
             raise ConfigError(f"--ckpt_path {config.ckpt_path} does not exist: pass a checkpoint file, or `last` "
                               "for the run's newest (e.g. RUN/checkpoints/last.ckpt)")
         if self.subcommand == "validate" and not config.ckpt_path:
             print("hauwm pretrain validate: no --ckpt_path, so this scores a freshly initialised model", file=sys.stderr)
+        if self.subcommand == "validate":  # settle_trainer leaves the checkpoint callbacks out, on purpose
+            warnings.filterwarnings("ignore", message="Be aware that when using `ckpt_path`, callbacks used to create")
         settle_trainer(config.trainer, self.subcommand)
 
     def before_fit(self) -> None:
@@ -259,6 +260,7 @@ def lightning_cli(args: list[str]) -> PretrainCLI:
             notice=notice,
             args=args,
             save_config_kwargs={"overwrite": True},
+            auto_configure_optimizers=False,  # the module's own two Adams (manual optimisation): no --optimizer flags
             parser_kwargs={"prog": "hauwm pretrain",
                            "description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video shards."},
         )

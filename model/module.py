@@ -143,6 +143,21 @@ class PretrainModule(L.LightningModule):
         # engineering: how the step runs, not what it computes
         compile: CompileMode = "off",
     ):
+        """The world model trained on eq. 2's ELBO + λ · eq. 3's HCU loss, λ following eq. 4.
+
+        Args:
+            world_model: the world model's sizes (model/config.py); they define the export's architecture
+            k_max: the largest gap K_max (linked to --data.k_max, which sets it)
+            lr: Adam learning rate of the world model (Table 3: 1e-4)
+            lambda_init: λ's initial value; 0 turns HCU off (the no-HCU ablation)
+            lambda_lr: Adam learning rate of log λ's dual ascent (eq. 4)
+            hcu_target: the level of E[k · disagreement] that λ's dual ascent holds the model to
+            kl_balance: KL balancing: the share of the KL's gradient that trains the prior heads
+            kl_scale: the weight β of the KL term of eq. 2
+            grad_clip: the world model's global gradient-norm clip
+            noise_seed: seed of the posterior samples' noise (one draw per step and rank: exact resume)
+            compile: torch.compile of the step: off, default (inductor), reduce-overhead (inductor + CUDA graphs)
+        """
         super().__init__()
         if isinstance(world_model, Mapping):  # load_from_checkpoint of a module built without the CLI passes the dict
             world_model = WorldModelConfig.from_dict(world_model)

@@ -240,6 +240,7 @@ def list_(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from finetune.agent import DivergedError
     from finetune.datasets.minari_io import DatasetError, KeptOnInterrupt
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
@@ -260,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
             inspect(args)
         else:
             list_(args)
-    except (DatasetError, ConfigError, FinetuneError, PretrainedError, ReplayError) as error:
+    except (DatasetError, ConfigError, DivergedError, FinetuneError, PretrainedError, ReplayError) as error:
         print(f"hauwm datasets: error: {error}", file=sys.stderr)
         return 2
     except KeptOnInterrupt as stopped:

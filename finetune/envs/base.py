@@ -12,7 +12,9 @@ DeepMind Control, Meta-World and RoboDesk:
 - `info["success"]` (1.0 / 0.0) where the suite defines success: whether the task was solved at any
   simulator step inside this agent step.
 
-A suite subclass supplies four hooks: `_seed_sim`, `_reset_sim`, `_step_sim` and `_render_frame`.
+A suite subclass supplies the hooks `_seed_sim`, `_reset_sim`, `_step_sim`, `_render_frame` and `_close_sim`.
+A non-finite action (a diverged policy's NaN) and any use after `close()` are refused by name: a simulator
+would otherwise take a NaN (Meta-World's drawer-close even scores it as solved) or fail deep inside.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ class PixelEnv(gymnasium.Env):
         self.action_space = gymnasium.spaces.Box(-1.0, 1.0, self._action_low.shape, np.float32, seed=seed)
         self._agent_steps = 0
         self._episode_over = True  # step() needs a reset() first
+        self._closed = False
 
     # --- the four hooks a suite implements -------------------------------------------------------
 
@@ -76,9 +79,14 @@ class PixelEnv(gymnasium.Env):
         """The current frame, uint8 [H, W, 3]."""
         raise NotImplementedError
 
+    def _close_sim(self) -> None:
+        """Free the simulator and its renderer (called once, by `close`)."""
+        raise NotImplementedError
+
     # --- gymnasium API ---------------------------------------------------------------------------
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        self._refuse_if_closed()
         super().reset(seed=seed)
         if seed is not None:
             self._seed_sim(seed)
@@ -88,14 +96,18 @@ class PixelEnv(gymnasium.Env):
         return self._observation(), {}
 
     def step(self, action: np.ndarray):
+        self._refuse_if_closed()
         if self._episode_over:
             raise RuntimeError(
                 f"{self.name}: step() called on a finished episode (or before the first reset()); "
                 "call reset() after terminated or truncated"
             )
-        action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)  # [A]
+        action = np.asarray(action, dtype=np.float64)  # [A]
         if action.shape != self._action_low.shape:
             raise ValueError(f"{self.name}: action shape {action.shape}, expected {self._action_low.shape}")
+        if not np.isfinite(action).all():
+            raise ValueError(f"{self.name}: non-finite action {action}: a policy that gives NaN or inf has diverged")
+        action = np.clip(action, -1.0, 1.0)
         native = self._action_low + (action + 1.0) * 0.5 * (self._action_high - self._action_low)
 
         reward, terminated, sim_truncated, success = 0.0, False, False, None
@@ -114,7 +126,17 @@ class PixelEnv(gymnasium.Env):
 
     def render(self) -> np.ndarray:
         """The current frame, uint8 [H, W, 3] (gymnasium's rgb_array convention)."""
+        self._refuse_if_closed()
         return self._render_frame()
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._close_sim()
+
+    def _refuse_if_closed(self) -> None:
+        if self._closed:
+            raise RuntimeError(f"{self.name}: this env is closed; make a new one (finetune.envs.make_env)")
 
     def _observation(self) -> np.ndarray:
         frame = self._render_frame()  # [H, W, 3]

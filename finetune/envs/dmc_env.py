@@ -68,7 +68,7 @@ class DMCEnv(PixelEnv):
     def _render_frame(self) -> np.ndarray:
         return self._camera.render(render_flag_overrides=self._render_flags)  # [H, W, 3]
 
-    def close(self) -> None:
+    def _close_sim(self) -> None:
         self._env.physics.free()  # frees the OpenGL context now, not in a noisy atexit hook
 
 

@@ -98,7 +98,7 @@ class MetaWorldEnv(PixelEnv):
         self._viewer.make_context_current()
         return self._env.render()[::-1]  # [H, W, 3]; corner cameras render upside down
 
-    def close(self) -> None:
+    def _close_sim(self) -> None:
         if self._viewer is None:
             return
         # Free our OpenGL objects inside our own context: left to gymnasium and the garbage collector,

@@ -93,7 +93,7 @@ class RoboDeskEnv(PixelEnv):
         image = Image.fromarray(frame).crop(CROP_BOX).resize((self.image_size,) * 2, Image.LANCZOS)
         return np.asarray(image)  # [H, W, 3]
 
-    def close(self) -> None:
+    def _close_sim(self) -> None:
         self._env.physics.free()  # frees the OpenGL context now, not in a noisy atexit hook
 
 

@@ -12,7 +12,8 @@
   from a process that has them already — except under `MUJOCO_GL=egl`, where importing dm_control opens
   an EGL display: every worker forked from a server holding one failed to make its context
   (`EGL_BAD_ALLOC`, seen on an H200), so there each worker imports its suite itself. A worker that
-  cannot build its env says why in one line and the parent raises `EnvWorkerError` naming the task.
+  cannot build its env says why in one line and the parent raises `EnvWorkerError` naming the task; one
+  that dies later (a crash in the simulator, the out-of-memory killer) is named with its seed and cause.
   Workers ignore SIGINT: a terminal's Ctrl-C reaches the whole process group, and the learner, not each
   worker, decides what an interrupt does (`closing_envs` ends them). Frames come back through shared memory.
 - Workers are pinned to CPUs (`pin=True`, the default; Linux), the way Sample Factory pins its rollout
@@ -48,7 +49,65 @@ START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_met
 
 
 class EnvWorkerError(RuntimeError):
-    """An env worker process could not build its env; the worker's own line on stderr says why."""
+    """An env worker process could not build its env, or ended while it ran one; the message says which and why."""
+
+
+# how an env worker that died can have been killed, and what to do about it
+DEATH_CAUSES = {
+    signal.SIGKILL: "killed by SIGKILL, most likely by the kernel's out-of-memory killer (`dmesg` says so): lower "
+                    "num_envs or give the job more memory",
+    signal.SIGSEGV: "crashed in native code (SIGSEGV: the simulator or its OpenGL renderer): num_envs 1 runs the env "
+                    "in this process, where the crash shows its place; MUJOCO_GL=egl or osmesa changes the renderer",
+}
+
+
+def death_cause(exitcode: int | None) -> str:
+    """What a worker process's exit code says about how it ended."""
+    if exitcode is None:
+        return "its pipe closed while the process still runs"
+    if exitcode >= 0:
+        return f"it exited with status {exitcode}"
+    return DEATH_CAUSES.get(-exitcode, f"killed by signal {-exitcode} ({signal.strsignal(-exitcode)})")
+
+
+class WorkerEnvs(AsyncVectorEnv):
+    """gymnasium's AsyncVectorEnv whose workers, when one dies mid-run (a segfault in the simulator or renderer,
+    the out-of-memory killer), are named in an EnvWorkerError: env index, seed, pid and cause, not the bare
+    EOFError or BrokenPipeError its pipe gives."""
+
+    def __init__(self, name: str, seeds: list[int], env_fns: list, **kwargs):
+        self.name, self.seeds = name, seeds
+        super().__init__(env_fns, **kwargs)
+
+    def reset_async(self, *args, **kwargs):
+        with self._naming_dead_workers():
+            return super().reset_async(*args, **kwargs)
+
+    def reset_wait(self, *args, **kwargs):
+        with self._naming_dead_workers():
+            return super().reset_wait(*args, **kwargs)
+
+    def step_async(self, *args, **kwargs):
+        with self._naming_dead_workers():
+            return super().step_async(*args, **kwargs)
+
+    def step_wait(self, *args, **kwargs):
+        with self._naming_dead_workers():
+            return super().step_wait(*args, **kwargs)
+
+    @contextlib.contextmanager
+    def _naming_dead_workers(self) -> Iterator[None]:
+        try:
+            yield
+        except (EOFError, ConnectionError) as error:
+            dead = []
+            for index, process in enumerate(self.processes):
+                process.join(timeout=1.0)  # a pipe that closed: its process is ending
+                if process.exitcode is not None:
+                    dead.append(f"env worker {index} of {self.name} (seed {self.seeds[index]}, pid {process.pid}) "
+                                f"died: {death_cause(process.exitcode)}")
+            raise EnvWorkerError("; ".join(dead) or f"an env worker of {self.name} stopped answering "
+                                 f"({type(error).__name__} from its pipe)") from None
 
 
 def make_vector_env(name: str, seeds: list[int], pin: bool = True, **kwargs) -> VectorEnv:
@@ -62,10 +121,10 @@ def make_vector_env(name: str, seeds: list[int], pin: bool = True, **kwargs) -> 
         context.set_forkserver_preload(forkserver_preload(name))
     env_fns = [functools.partial(make_env_in_worker, name, os.getpid(), seed=seed, **kwargs) for seed in seeds]
     try:
-        envs = AsyncVectorEnv(env_fns, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP)
+        envs = WorkerEnvs(name, seeds, env_fns, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP)
     except (EOFError, ConnectionError) as error:  # a worker ended before answering: make_env_in_worker said why
         raise EnvWorkerError(f"an env worker of {name} could not build its env (the worker's reason is on stderr "
-                             f"above); {type(error).__name__} from the worker's pipe") from None
+                             f"above, unless a signal killed it); {type(error).__name__} from the worker's pipe") from None
     if pin and hasattr(os, "sched_getaffinity"):  # Linux
         cpu_sets = worker_cpus(len(seeds), sorted(os.sched_getaffinity(0)))
         if cpu_sets is not None:
@@ -109,7 +168,7 @@ def closing_envs(envs: VectorEnv) -> Iterator[VectorEnv]:
     try:
         yield envs
     except BaseException:
-        with warnings.catch_warnings(), contextlib.suppress(OSError, EOFError):
+        with warnings.catch_warnings(), contextlib.suppress(OSError, EOFError, EnvWorkerError):
             warnings.simplefilter("ignore")
             envs.close(terminate=True)
         if not envs.closed:  # close stopped at a dead worker's pipe: end the rest here, and let no __del__ try again

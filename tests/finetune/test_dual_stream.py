@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from finetune import load_pretrained
-from finetune.agent import Agent
+from finetune.agent import Agent, DivergedError
 from finetune.pretrained import k1_embedding
 
 ACTION_DIM = 3
@@ -158,3 +158,15 @@ def test_free_nats_floor_each_kl_part(export_dir, tiny_config):
     torch.testing.assert_close(loss, metrics["recon_nll"] + metrics["reward_nll"] + 0.5 * 1e6)
     loss.backward()
     assert wm.rssm.prior_out.weight.grad is None or not wm.rssm.prior_out.weight.grad.any()  # the heads learn nothing
+
+
+def test_an_actor_that_gives_nan_is_refused_by_name(export_dir, tiny_config):
+    agent = make_agent(tiny_config(), export_dir)
+    latent, prev_action = agent.initial(2)
+    obs = np.zeros((2, 3, 64, 64), np.uint8)
+    agent.act(obs, latent, prev_action, explore=False)  # finite weights: fine
+    with torch.no_grad():
+        for parameter in agent.behavior.actor.parameters():
+            parameter.fill_(float("nan"))
+    with pytest.raises(DivergedError, match="non-finite action .* the agent has diverged"):
+        agent.act(obs, latent, prev_action, explore=False)

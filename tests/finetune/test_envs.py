@@ -62,6 +62,14 @@ def test_spaces_reset_step_and_time_limit(name, envs_to_close):
         env.step(env.action_space.sample())
     obs, _ = env.reset()  # a new episode after truncation
     assert env.step(env.action_space.sample())[3] is False
+    # a diverged policy's NaN is refused (Meta-World's drawer-close would score it as solved)
+    with pytest.raises(ValueError, match=f"{name}: non-finite action"):
+        env.step(np.full(env.action_space.shape, np.nan, np.float32))
+    env.close()
+    env.close()  # twice is fine
+    for use in (env.reset, lambda: env.step(env.action_space.sample()), env.render):
+        with pytest.raises(RuntimeError, match=f"{name}: this env is closed"):
+            use()
 
 
 @pytest.mark.filterwarnings("ignore:.*(render fps|alternative render modes)")

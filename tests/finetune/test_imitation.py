@@ -11,7 +11,7 @@ from model.config import ConfigError
 from finetune.discriminator import Discriminator
 from finetune.imitation import ImitationAgent, train_imitation
 from finetune.envs import make_env
-from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, FinetuneError, build_agent
+from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, FinetuneError, build_agent, episode_seed
 from finetune.world_model import Latent
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
@@ -228,8 +228,8 @@ def test_a_refused_dataset_leaves_the_run_directory_as_it_was(export_dir, tiny_c
 
 
 def test_with_parallel_envs_every_episode_starts_from_its_own_seed(export_dir, tiny_config, tmp_path, two_demos):
-    """num_envs 2: env i's episodes are reset with seed + episodes so far + i · ENV_SEED_STRIDE, in the env
-    made with the seed of a fresh run, and end up apart in the replay."""
+    """num_envs 2: env i's episodes are reset with episode_seed(seed, i, episodes so far), in the env made with
+    the seed of a fresh run, and end up apart in the replay."""
     cfg = imitation_config(tiny_config, tmp_path / "run", 32, num_envs=2, eval_every=32, checkpoint_every=32)
     train_imitation(cfg, export_dir, progress=False)
     episodes = sorted((tmp_path / "run" / "replay").glob("*.npz"))
@@ -238,8 +238,14 @@ def test_with_parallel_envs_every_episode_starts_from_its_own_seed(export_dir, t
     for index, path in enumerate(episodes):  # order: env 0, env 1, env 0, env 1
         env_index, episodes_before = index % 2, 2 * (index // 2)
         env = make_env(cfg.task, seed=cfg.seed + ENV_SEED_STRIDE * env_index, **env_kwargs)
-        first = env.reset(seed=cfg.seed + episodes_before + ENV_SEED_STRIDE * env_index)[0]
+        first = env.reset(seed=episode_seed(cfg.seed, env_index, episodes_before))[0]
         env.close()
         with np.load(path) as episode:
             assert len(episode["obs"]) == 9
             np.testing.assert_array_equal(episode["obs"][0], first, err_msg=f"episode {index}")
+
+
+def test_runs_with_neighbouring_seeds_play_different_episodes():
+    """seed + episodes would make run 0's second episode run 1's first; episode_seed gives each its own."""
+    seeds = {episode_seed(run, env, episodes) for run in range(4) for env in range(2) for episodes in range(50)}
+    assert len(seeds) == 4 * 2 * 50 and all(0 <= seed < 2**32 for seed in seeds)

@@ -17,7 +17,7 @@ import torch
 
 from finetune.config import load_config
 from finetune.envs import make_env, opengl
-from finetune.envs.vector import closing_envs, forkserver_preload, make_vector_env, worker_cpus
+from finetune.envs.vector import EnvWorkerError, closing_envs, forkserver_preload, make_vector_env, worker_cpus
 from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, train
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
@@ -259,3 +259,17 @@ def test_an_interrupt_while_the_workers_step_ends_them_and_stays_an_interrupt(wo
     for process in processes:
         process.join(timeout=10)
         assert not process.is_alive()
+
+
+def test_an_env_worker_that_dies_mid_run_is_named_with_its_seed_and_cause():
+    """The out-of-memory killer (SIGKILL) ends env worker 1 between steps: the next step names the worker, its
+    seed and the likely cause instead of a bare EOFError from its pipe."""
+    envs = make_vector_env("dmc_cartpole_swingup", [0, 7], pin=False, fast_render=True, time_limit=3)
+    with pytest.raises(EnvWorkerError, match=r"env worker 1 of dmc_cartpole_swingup \(seed 7, pid \d+\) died: "
+                                             r"killed by SIGKILL, most likely by the kernel's out-of-memory killer"), \
+            closing_envs(envs):
+        envs.reset()
+        os.kill(envs.processes[1].pid, signal.SIGKILL)
+        envs.processes[1].join()
+        envs.step(np.zeros((2, 1), np.float32))
+    assert not any(process.is_alive() for process in envs.processes)

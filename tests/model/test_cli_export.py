@@ -165,6 +165,17 @@ def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, 
     assert not (tmp_path / "checkpoints").exists()
 
 
+def test_no_shard_directory_and_an_optimizer_flag_are_refused_in_one_line(capsys):
+    assert main(["fit", "--config", str(TINY_CONFIG)]) == 2  # every config leaves data.shards to the command line
+    err = capsys.readouterr().err
+    assert "no shard directory: pass --data.shards DIR" in err and "Traceback" not in err
+    # the module runs its own two Adams: LightningCLI's --optimizer / --lr_scheduler would crash the fit's first step
+    assert main(["fit", "--config", str(TINY_CONFIG), "--optimizer", "torch.optim.SGD"]) == 2
+    assert "--optimizer" in capsys.readouterr().err
+    assert main(["fit", "--help"]) == 0
+    assert "--data.shards" in (help_text := capsys.readouterr().out) and "--optimizer" not in help_text
+
+
 def test_an_unknown_flag_names_the_help_command_that_exists(capsys):
     assert main(["fit", "--model.nonsense", "1"]) == 2
     err = capsys.readouterr().err
@@ -395,3 +406,5 @@ def test_validate_scores_a_checkpoint_and_writes_no_checkpoint(built_shards, tin
     assert "val/loss" in capsys.readouterr().out
     assert not (tmp_path / "checkpoints").exists() and list((tmp_path / "lightning_logs").glob("version_0"))
     assert not [w for w in recwarn if "dirpath has changed" in str(w.message)]
+    # the checkpoint callbacks are left out on purpose; Lightning's advice to add them back is not shown
+    assert not [w for w in recwarn if "callbacks used to create the checkpoint" in str(w.message)]
