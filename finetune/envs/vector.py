@@ -39,7 +39,7 @@ import os
 import signal
 import sys
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
@@ -70,6 +70,15 @@ def death_cause(exitcode: int | None) -> str:
     return DEATH_CAUSES.get(-exitcode, f"killed by signal {-exitcode} ({signal.strsignal(-exitcode)})")
 
 
+def naming_dead_workers(method: Callable) -> Callable:
+    """A WorkerEnvs method run inside its `_dead_workers_named` (an EnvWorkerError for a worker that died)."""
+    @functools.wraps(method)
+    def naming(self, *args, **kwargs):
+        with self._dead_workers_named():
+            return method(self, *args, **kwargs)
+    return naming
+
+
 class WorkerEnvs(AsyncVectorEnv):
     """gymnasium's AsyncVectorEnv whose workers, when one dies mid-run (a segfault in the simulator or renderer,
     the out-of-memory killer), are named in an EnvWorkerError: env index, seed, pid and cause, not the bare
@@ -79,24 +88,14 @@ class WorkerEnvs(AsyncVectorEnv):
         self.name, self.seeds = name, seeds
         super().__init__(env_fns, **kwargs)
 
-    def reset_async(self, *args, **kwargs):
-        with self._naming_dead_workers():
-            return super().reset_async(*args, **kwargs)
-
-    def reset_wait(self, *args, **kwargs):
-        with self._naming_dead_workers():
-            return super().reset_wait(*args, **kwargs)
-
-    def step_async(self, *args, **kwargs):
-        with self._naming_dead_workers():
-            return super().step_async(*args, **kwargs)
-
-    def step_wait(self, *args, **kwargs):
-        with self._naming_dead_workers():
-            return super().step_wait(*args, **kwargs)
+    # every call that talks to the workers (step and reset are an _async and a _wait)
+    reset_async = naming_dead_workers(AsyncVectorEnv.reset_async)
+    reset_wait = naming_dead_workers(AsyncVectorEnv.reset_wait)
+    step_async = naming_dead_workers(AsyncVectorEnv.step_async)
+    step_wait = naming_dead_workers(AsyncVectorEnv.step_wait)
 
     @contextlib.contextmanager
-    def _naming_dead_workers(self) -> Iterator[None]:
+    def _dead_workers_named(self) -> Iterator[None]:
         try:
             yield
         except (EOFError, ConnectionError) as error:
