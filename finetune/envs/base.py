@@ -57,7 +57,7 @@ class PixelEnv(gymnasium.Env):
         self._episode_over = True  # step() needs a reset() first
         self._closed = False
 
-    # --- the four hooks a suite implements -------------------------------------------------------
+    # --- the five hooks a suite implements --------------------------------------------------------
 
     def _seed_sim(self, seed: int) -> None:
         """Re-seed the simulator's own random state (initial states, goals)."""
