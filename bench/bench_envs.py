@@ -58,7 +58,8 @@ def main() -> int:
 
     print(f"machine: {describe_machine()}")
     print(
-        f"settings: MUJOCO_GL={os.environ['MUJOCO_GL']}, 64x64 frames, one process, random actions, seed 0; "
+        f"settings: MUJOCO_GL={os.environ['MUJOCO_GL']}, 64x64 frames, one process, random actions, seed 0, "
+        f"{args.seconds:g} s and at least {args.min_steps} agent steps per task and mode; "
         f"mujoco {version('mujoco')}, dm-control {version('dm-control')}, metaworld {version('metaworld')}, "
         f"robodesk {version('robodesk')}"
     )

@@ -64,6 +64,12 @@ def main() -> None:
         agent = build_agent(cfg, env.action_space.shape[0], args.pretrained, torch.device("cpu"))
     except (PretrainedError, FinetuneError) as error:
         sys.exit(f"error: {error}")
+    frozen = agent.world_model.frozen.rssm
+    print(f"machine: {describe_machine()}")
+    print(f"settings: export {args.pretrained} (deter {frozen.deter_dim}, stoch {frozen.stoch_dim}, M = "
+          f"{frozen.ensemble}), task {args.task}, action repeat {args.action_repeat}, {args.episodes} random episodes, "
+          f"{args.windows} windows of 16 posterior states, ensemble-mean imagination over {args.horizon} steps",
+          flush=True)
     replay = Replay(None, capacity=10**6, rng=np.random.default_rng(args.seed))
     rng = np.random.default_rng(args.seed)
     for _ in range(args.episodes):
@@ -71,14 +77,8 @@ def main() -> None:
     batch = {key: torch.as_tensor(value) for key, value in replay.sample(args.windows, 16).items()}
     with torch.no_grad():
         latent, _ = agent.world_model.observe(batch["obs"], batch["action"])
-        feats = agent.world_model.imagine(latent, constant_policy(0.0), args.horizon)[0]  # [H+1, N, F]
-    frozen = agent.world_model.frozen.rssm
+        feats = agent.world_model.imagine(latent, constant_policy(0.0, agent.action_dim), args.horizon)[0]  # [H+1, N, F]
     table = drift_table(feats[..., :frozen.feature_dim], frozen.deter_dim)
-
-    print(f"machine: {describe_machine()}")
-    print(f"export {args.pretrained} (deter {frozen.deter_dim}, stoch {frozen.stoch_dim}, M = {frozen.ensemble}), "
-          f"task {args.task}, action repeat {args.action_repeat}, {args.episodes} random episodes, "
-          f"{feats.shape[1]} posterior states, ensemble-mean imagination")
     print(f"{'step':>5} {'deter |z|':>10} {'stoch |z|':>10}")
     for step, (deter_z, stoch_z) in enumerate(table):
         print(f"{step:>5} {deter_z:>10.2f} {stoch_z:>10.2f}")

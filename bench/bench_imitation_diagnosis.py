@@ -26,6 +26,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.machine import describe_machine  # noqa: E402
 from finetune.config import load_config  # noqa: E402
 from finetune.imitation import ImitationAgent, RecordedActions  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
@@ -75,7 +76,8 @@ def main() -> int:
     steps = cfg.seq_len - 1
     expert = imagined_pairs(agent, first, RecordedActions(recorded.transpose(0, 1)), steps)
     actor = imagined_pairs(agent, first, agent.behavior.actor, steps)
-    print(f"{args.run} at {counters['env_step']} env steps (expert_latents: {cfg.expert_latents}); "
+    print(f"machine: {describe_machine()}")
+    print(f"settings: {args.run} at {counters['env_step']} env steps (expert_latents: {cfg.expert_latents}); "
           f"{args.windows} demonstration windows of {cfg.seq_len} steps")
     print(f"posterior expert pairs: logit (called expert) "
           f"{judged(logit(agent.world_model.feature(start)[:, :-1], recorded))}")

@@ -36,9 +36,10 @@ from finetune.replay import Replay  # noqa: E402
 CONSTANT_ACTIONS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 
 
-def constant_policy(value: float):
+def constant_policy(value: float, action_dim: int = 1):
+    """A policy for DualStreamWorldModel.imagine that always takes `value` in each of `action_dim` dimensions."""
     def policy(feat: torch.Tensor) -> TruncatedNormal:
-        shape = (*feat.shape[:-1], 1)
+        shape = (*feat.shape[:-1], action_dim)
         return TruncatedNormal(torch.full(shape, value), torch.full(shape, 1e-3))
     return policy
 

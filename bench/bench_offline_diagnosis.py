@@ -36,6 +36,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.machine import describe_machine  # noqa: E402
 from finetune.offline import OfflineAgent  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
 from finetune.pretrained import PretrainedError  # noqa: E402
@@ -123,7 +124,8 @@ def main() -> int:
         with contextlib.closing(task_env(cfg, cfg.seed)) as env:
             action_dim = env.action_space.shape[0]
         cfg, agent, counters = load_trained(args.run, args.pretrained, action_dim, checkpoint=args.checkpoint)
-        print(f"{args.run / args.checkpoint} at {counters['updates']} updates: penalty {cfg.penalty}, "
+        print(f"machine: {describe_machine()}")
+        print(f"settings: {args.run / args.checkpoint} at {counters['updates']} updates: penalty {cfg.penalty}, "
               f"λ {cfg.penalty_scale:g}; {args.batches} batches of {cfg.batch_size} × {cfg.seq_len} per dataset")
         results = {"training dataset": diagnose(agent, windows(cfg.dataset, cfg, action_dim, args.batches, 1,
                                                                "the run's dataset (RUNDIR/config.yaml)")),

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -46,6 +47,7 @@ def run_claim(out: Path, steps: int, shards: Path | None = None, extra: list[str
     exports, seconds = [], {}
     for name, lambda_init in (("hcu", "1.0"), ("no-hcu", "0")):
         root = out / name
+        shutil.rmtree(root, ignore_errors=True)  # a fresh fit each time (a fit refuses another's last.ckpt)
         start = time.perf_counter()
         code = main(["fit", "--config", str(REPO / "configs" / "pretrain" / "tiny.yaml"), "--data.shards", str(shards),
                      "--trainer.default_root_dir", str(root), "--trainer.max_steps", str(steps),
@@ -78,10 +80,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO / "runs" / "bench-claim")
     parser.add_argument("--shards", type=Path, default=None, help="default: build the built-in data under --out")
     args, extra = parser.parse_known_args()
-    result = run_claim(args.out, args.steps, args.shards, extra)
     print(f"machine: {describe_machine()}")
-    print(f"settings: tiny.yaml, {args.steps} steps each, extra flags {extra or 'none'}; "
-          f"training took {result['train_seconds']['hcu']:.0f} s / {result['train_seconds']['no-hcu']:.0f} s")
+    print(f"settings: tiny.yaml, {args.steps} steps each, extra flags {extra or 'none'}", flush=True)
+    result = run_claim(args.out, args.steps, args.shards, extra)
+    print(f"training took {result['train_seconds']['hcu']:.0f} s (HCU) / {result['train_seconds']['no-hcu']:.0f} s "
+          "(no HCU)")
     print(f"{'k':>3} {'disagreement HCU':>17} {'no HCU':>10} {'open-loop MSE HCU':>18} {'no HCU':>10}")
     for i, k in enumerate(result["hcu"]["k"]):
         print(f"{k:>3} {result['hcu']['disagreement'][i]:17.5f} {result['no_hcu']['disagreement'][i]:10.5f} "

@@ -6,7 +6,7 @@ workers (decode + JPEG encode + tar writing + hashing; wall clock, and per CPU s
 its ratio to the bare loop, the peak memory of the build's main process and of its largest worker for two dataset sizes
 (it should stay flat as the dataset grows), and the bytes per frame of each encoding.
 
-    python bench/bench_shards.py [--clips 48] [--keep DIR]
+    python bench/bench_shards.py [--clips 64] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -80,6 +80,8 @@ def main() -> None:
     if not (data / "annotations").is_dir():
         make_sample_data(data, args.clips, workers=2)
     print(f"machine: {describe_machine()}")
+    print(f"settings: --clips {args.clips} of the built-in sample data; builds at the build's defaults (64×64, "
+          "squash, JPEG) with --workers 1 and 2, and with raw frames", flush=True)
     seconds, cpu, clips, frames = bare_loop(data)
     bare_fps = frames / cpu
     print(f"data: {clips} train clips, {frames} frames (sample data, 240 px high VP9, 24–60 frames per clip)")

@@ -21,11 +21,11 @@ from finetune.envs.vector import EnvWorkerError, closing_envs, forkserver_preloa
 from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, train
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
-# `configs/finetune/demo.yaml` with the tests' export (conftest.py), device cpu, 1 thread, on this project's
-# development CPU (AMD EPYC, AVX2): (env_step, return) per training episode and per evaluation; (env_step,
-# updates, model_loss, actor_loss, critic_loss, imagined_return) per train.csv row. First recorded on main at
-# 073e62e (before num_envs and compile existed), which the one-env loop reproduced exactly; recorded again when
-# the frozen stream's first step got the gap-0 embedding (the only change: every figure within 0.2% of before).
+# `configs/finetune/demo.yaml` with the tests' export (conftest.py), device cpu, 1 thread: (env_step, return) per
+# training episode and per evaluation; (env_step, updates, model_loss, actor_loss, critic_loss, imagined_return)
+# per train.csv row. First recorded on main at 073e62e (before num_envs and compile existed; an AMD EPYC with
+# AVX2), which the one-env loop reproduced exactly, also on the Intel Xeon development box; recorded again there
+# when the frozen stream's first step got the gap-0 embedding (the only change: every figure within 0.2%).
 # Another CPU's float rounding may move the losses slightly.
 RECORDED = {
     "episodes": [(100, 0.1561575450745078), (200, 0.7060239111946077), (300, 0.2933650531376514),
