@@ -76,6 +76,7 @@ class ShardDataModule(lightning.LightningDataModule):
         self.save_hyperparameters()
         self.train_set: SequenceDataset | None = None
         self.val_set: SequenceDataset | None = None
+        self.train_clip_length: float | None = None  # the median frame count of the clips trained on
 
     def setup(self, stage: str | None = None) -> None:
         hp = self.hparams
@@ -85,8 +86,9 @@ class ShardDataModule(lightning.LightningDataModule):
         read_manifest(hp.shards)  # a clear error naming the directory and the build command
         common = dict(batch_size=hp.batch_size, seq_len=hp.seq_len, k_max=hp.k_max, seed=hp.seed)
         if stage in (None, "fit"):
-            self.train_set = SequenceDataset(shard_set(hp.shards, hp.train_split, hp.shard_url),
-                                             num_workers=hp.num_workers, shuffle=True, continuous=True,
+            train_shards = shard_set(hp.shards, hp.train_split, hp.shard_url)
+            self.train_clip_length = train_shards.median_frames(hp.seq_len)  # the export records it (PretrainModule)
+            self.train_set = SequenceDataset(train_shards, num_workers=hp.num_workers, shuffle=True, continuous=True,
                                              shuffle_buffer=hp.shuffle_buffer, **common)
         no_validation = stage == "fit" and self.trainer is not None and self.trainer.limit_val_batches == 0
         if stage in (None, "fit", "validate") and not no_validation:

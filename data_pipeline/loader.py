@@ -90,6 +90,15 @@ class ShardSet:
         """Per shard, the number of clips with at least `seq_len` frames (the others are skipped)."""
         return [sum(n for frames, n in counts.items() if frames >= seq_len) for counts in self.frame_counts]
 
+    def median_frames(self, seq_len: int) -> float | None:
+        """The median frame count T of the clips with at least `seq_len` frames (None if there are none): the
+        typical T of the relative temporal embedding's k / T, which fine-tuning's k = 1 embedding takes."""
+        lengths = [(frames, n) for counts in self.frame_counts for frames, n in counts.items() if frames >= seq_len]
+        if not lengths:
+            return None
+        frames, clips = np.array(lengths).T
+        return float(np.median(np.repeat(frames, clips)))
+
 
 def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -> ShardSet:
     """The shards of `split` listed in `directory/manifest.json`. `shard_url` (e.g.

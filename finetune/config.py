@@ -85,7 +85,8 @@ class FinetuneConfig:
     imagine_heads: str = "random"  # with model_heads > 1, imagination draws s̃ from a "random" head per step (LOMPO) or the "mean"
     units: int = 400  # reward head, actor and critic: 2 hidden layers × 400 ELU
     noise_std: float = 0.01  # Gaussian noise on the frozen stream's k = 1 temporal embedding
-    k1_clip_length: float | None = None  # T of the relative k = 1 embedding; None = the export's reference length
+    k1_clip_length: float | None = None  # T of the relative k = 1 embedding; None: the export's median clip length
+    #                                        (of its pre-training clips; the reference length if it has none)
     kl_balance: float = 0.8
     kl_scale: float = 1.0
     free_nats: float = 1.0

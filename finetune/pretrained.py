@@ -8,14 +8,17 @@ image normalisation — and freezes every parameter (requires_grad False, eval m
 what to do.
 
 `k1_embedding(model)` builds the conditioning of the frozen stream, Δt^e_{k=1}, the way pre-training
-built embeddings: the relative mode encodes k = 1 at position 1 / T · reference_length; fine-tuning has
-no source clip, so T defaults to the reference length (position 1, the same vector as the absolute
-mode's E[1]); `k1_clip_length` in the fine-tuning config sets another T. The first step of a sequence
+built embeddings: the relative mode encodes k = 1 at position 1 / T · reference_length. Fine-tuning has
+no source clip, so T defaults to the median frame count of the clips the export was pre-trained on
+(recorded in its config.json as provenance.train_clip_length: a typical pre-training clip's k = 1), or,
+for an export that does not record it, to the reference length (position 1, the same vector as the
+absolute mode's E[1]); `k1_clip_length` in the fine-tuning config sets another T. The first step of a sequence
 (from the zero state) gets `gap_embedding(model, 0)` instead, as in pre-training.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import torch
@@ -52,6 +55,10 @@ def _check_convention(config: dict, path: Path) -> None:
     if not isinstance(image_shape, (list, tuple)) or list(image_shape) != list(IMAGE_SHAPE):
         raise PretrainedError(f"{path}: image_shape {image_shape!r} differs from the {list(IMAGE_SHAPE)} "
                               "frames the environments give")
+    length = config.get("provenance", {}).get("train_clip_length")
+    if length is not None and not (type(length) in (int, float) and math.isfinite(length) and length > 0):
+        raise PretrainedError(f"{path}: provenance.train_clip_length {length!r} is not a positive number of frames "
+                              "(the median length of the pre-training clips); remove it, or re-export the checkpoint")
     normalisation = config.get("normalisation", NORMALISATION)
     if not isinstance(normalisation, dict) or \
             (normalisation.get("scale"), normalisation.get("offset")) != (NORMALISATION["scale"], NORMALISATION["offset"]):
@@ -68,5 +75,6 @@ def gap_embedding(model: FrozenWorldModel, gap: int, clip_length: float | None =
 
 
 def k1_embedding(model: FrozenWorldModel, clip_length: float | None = None) -> torch.Tensor:
-    """Δt^e_{k=1} → [temporal_dim]: the frozen stream's conditioning after the first step."""
-    return gap_embedding(model, 1, clip_length)
+    """Δt^e_{k=1} → [temporal_dim]: the frozen stream's conditioning after the first step; `clip_length` is T
+    (default: the median length of the export's pre-training clips, where it records one)."""
+    return gap_embedding(model, 1, clip_length or model.export_config.get("provenance", {}).get("train_clip_length"))

@@ -99,6 +99,8 @@ def read_config(export_dir: str | Path) -> dict[str, Any]:
         config = {key: value for key, value in config.items() if key not in flat} | {"world_model": flat}
     if not isinstance(config.get("world_model"), dict):
         raise ExportError(f"{path} lacks the \"world_model\" settings; re-export the checkpoint")
+    if not isinstance(config.get("provenance", {}), dict):
+        raise ExportError(f"{path}: \"provenance\" is {config['provenance']!r}, not an object; re-export the checkpoint")
     try:
         WorldModelConfig.from_dict(config["world_model"])
     except ConfigError as err:
@@ -197,5 +199,6 @@ def world_model_from_checkpoint(checkpoint: str | Path) -> tuple[WorldModel, dic
         "hcu": hparams.get("lambda_init", 0) > 0,
         "lambda_init": hparams.get("lambda_init"),
         "lambda_final": float(log_lambda.exp()) if log_lambda is not None and hparams.get("lambda_init", 0) > 0 else 0.0,
+        "train_clip_length": state.get("train_clip_length"),  # median T of the clips trained on (None: not recorded)
     }
     return model, provenance

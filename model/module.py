@@ -289,6 +289,13 @@ class PretrainModule(L.LightningModule):
         """Clip the world model's gradients to norm grad_clip → their norm before clipping (a device scalar)."""
         return torch.nn.utils.clip_grad_norm_(self._clipped, self.hparams.grad_clip, foreach=True)
 
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """The median frame count of the clips trained on, where a ShardDataModule gives it: the export records it
+        for fine-tuning's k = 1 embedding (finetune/pretrained.py)."""
+        length = getattr(self.trainer.datamodule, "train_clip_length", None)
+        if length is not None:
+            checkpoint["train_clip_length"] = length
+
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         refuse_other_size(checkpoint.get("hyper_parameters", {}), self.world_model.config, "the checkpoint")
         upgrade_checkpoint(checkpoint)

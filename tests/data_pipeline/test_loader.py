@@ -20,7 +20,8 @@ from scipy.stats import chisquare
 from torch.utils.data import DataLoader
 
 from data_pipeline import SetEpoch, ShardDataModule
-from data_pipeline.loader import LoaderError, ResumableDataLoader, SequenceDataset, make_dataloader, shard_set
+from data_pipeline.loader import (LoaderError, ResumableDataLoader, SequenceDataset, ShardSet, make_dataloader,
+                                  shard_set)
 from data_pipeline.shard_format import ShardDirError, decode_frames, read_samples
 from model.checkpointing import LastStepCheckpoint
 
@@ -85,6 +86,13 @@ def test_loader_gaps_follow_the_uniform_distribution(built_shards):
     counts = np.bincount(torch.cat(gaps).numpy(), minlength=6)[1:]
     assert counts.sum() == 25 * 9 * 2 * 4
     assert chisquare(counts).pvalue > 1e-3, counts
+
+
+def test_the_median_clip_length_counts_the_clips_long_enough_to_train_on():
+    shards = ShardSet("train", ["a.tar", "b.tar"], [{10: 1, 30: 2}, {20: 1, 40: 1, 5: 3}])
+    assert shards.median_frames(8) == 30  # 10, 20, 30, 30, 40 (the 5-frame clips are skipped)
+    assert shards.median_frames(15) == 30  # 20, 30, 30, 40
+    assert shards.median_frames(31) == 40 and shards.median_frames(41) is None
 
 
 def test_two_ranks_by_two_workers_get_equal_batch_counts_over_uneven_shards(built_shards, monkeypatch):

@@ -41,6 +41,18 @@ def test_k1_embedding_follows_the_exported_convention(export_dir):
     assert torch.allclose(k1_embedding(model, clip_length=2 * reference), half)
 
 
+def test_k1_embedding_takes_the_median_length_of_the_exports_pre_training_clips(export_copy):
+    """An export that records its clips' median frame count (provenance.train_clip_length) puts k = 1 where a
+    typical pre-training clip had it; the setting k1_clip_length still wins."""
+    config = json.loads((export_copy / "config.json").read_text())
+    _edit_config(export_copy, provenance={**config["provenance"], "train_clip_length": 50})
+    model = load_pretrained(export_copy)
+    reference = model.temporal.reference_length
+    assert torch.allclose(k1_embedding(model), k1_embedding(model, clip_length=50))
+    assert not torch.allclose(k1_embedding(model), k1_embedding(model, clip_length=reference))
+    assert torch.allclose(k1_embedding(model, clip_length=reference), k1_embedding(load_pretrained(export_copy), reference))
+
+
 @pytest.mark.parametrize(
     "damage, message",
     [
@@ -56,9 +68,11 @@ def test_k1_embedding_follows_the_exported_convention(export_dir):
         (lambda d: _edit_config(d, image_shape=64), "image_shape 64 differs"),
         (lambda d: _edit_config(d, feature_dim="32"), "config.json says feature_dim '32', the weights give"),
         (lambda d: (shutil.rmtree(d), d.write_bytes(b"a checkpoint")), "is a file, not an export directory"),
+        (lambda d: _edit_config(d, provenance=[]), "\"provenance\" is \\[\\], not an object"),
+        (lambda d: _edit_config(d, provenance={"train_clip_length": -3}), "train_clip_length -3 is not a positive"),
     ],
     ids=["no-dir", "no-config", "no-weights", "bad-json", "wrong-version", "wrong-shapes", "bad-embedding", "a-pickle",
-         "normalisation-text", "shape-number", "feature-dim-text", "a-file"],
+         "normalisation-text", "shape-number", "feature-dim-text", "a-file", "provenance-list", "negative-length"],
 )
 def test_bad_exports_fail_clearly(export_copy, damage, message):
     damage(export_copy)

@@ -44,6 +44,17 @@ def test_every_loss_term_and_lambda_is_logged_every_step(tiny_run):
     assert scalars(tiny_run, "val/spearman_k_disagreement")
 
 
+def test_the_export_records_the_median_length_of_the_clips_trained_on(built_shards, tiny_export):
+    """provenance.train_clip_length: the median frame count of the train clips with ≥ seq_len (8) frames, from the
+    manifest's per-shard counts; fine-tuning's k = 1 embedding takes it as T."""
+    shards = json.loads((built_shards / "manifest.json").read_text())["splits"]["train"]["shards"]
+    lengths = sorted(int(frames) for shard in shards for frames, n in shard["frame_counts"].items()
+                     for _ in range(n) if int(frames) >= 8)
+    middle = len(lengths) // 2
+    median = lengths[middle] if len(lengths) % 2 else (lengths[middle - 1] + lengths[middle]) / 2
+    assert load_frozen(tiny_export).export_config["provenance"]["train_clip_length"] == median
+
+
 def test_export_reproduces_the_trained_module(tiny_run, tiny_export, fake_batch):
     module = PretrainModule.load_from_checkpoint(tiny_run / "checkpoints" / "last.ckpt", map_location="cpu").eval()
     frozen = load_frozen(tiny_export)
