@@ -56,7 +56,7 @@ def _check_convention(config: dict, path: Path) -> None:
         raise PretrainedError(f"{path}: image_shape {image_shape!r} differs from the {list(IMAGE_SHAPE)} "
                               "frames the environments give")
     length = config.get("provenance", {}).get("train_clip_length")
-    if length is not None and not (type(length) in (int, float) and math.isfinite(length) and length > 0):
+    if length is not None and not _a_length(length):
         raise PretrainedError(f"{path}: provenance.train_clip_length {length!r} is not a positive number of frames "
                               "(the median length of the pre-training clips); remove it, or re-export the checkpoint")
     normalisation = config.get("normalisation", NORMALISATION)
@@ -72,6 +72,14 @@ def gap_embedding(model: FrozenWorldModel, gap: int, clip_length: float | None =
     clip_length = model.temporal.reference_length if clip_length is None else clip_length
     with torch.no_grad():
         return model.temporal(torch.tensor(float(gap)), torch.tensor(float(clip_length))).float()
+
+
+def _a_length(value: object) -> bool:
+    """Whether `value` (from JSON) is a positive, finite number of frames."""
+    try:
+        return type(value) in (int, float) and 0 < float(value) < math.inf
+    except OverflowError:  # an int beyond any float
+        return False
 
 
 def k1_embedding(model: FrozenWorldModel, clip_length: float | None = None) -> torch.Tensor:

@@ -10,12 +10,14 @@ LightningCLI turns --config files and flags into the module (model.*), the data 
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import logging
 import pydoc
 import sys
 import warnings
 from pathlib import Path
+from typing import Any
 
 import torch
 import yaml
@@ -183,6 +185,10 @@ class PretrainCLI(LightningCLI):
 
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("data.k_max", "model.k_max")  # one K_max for sampling and validation
+        # the module runs its own two Adams, so LightningCLI adds no --optimizer / --lr_scheduler; the config.yaml an
+        # earlier fit saved holds both as null, and stays usable as --config (a value is refused by name)
+        for name in ("optimizer", "lr_scheduler"):
+            parser.add_argument(f"--{name}", type=Any, default=None, help=argparse.SUPPRESS)
 
     def _parse_ckpt_path(self) -> None:
         """LightningCLI replaces the model settings with the checkpoint's when resuming: refuse a checkpoint of
@@ -206,6 +212,10 @@ class PretrainCLI(LightningCLI):
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand]
+        for name in ("optimizer", "lr_scheduler"):
+            if config.get(name) is not None:
+                raise ConfigError(f"{name}: the module optimises with its own two Adams (manual optimisation), so "
+                                  f"no {name} can be set; --model.lr and --model.lambda_lr set their learning rates")
         if config.data.shards:  # none: ShardDataModule says what to pass
             refuse_other_frame_size(config.data.shards, "--data.shards")  # and a missing or unfinished directory
         if config.ckpt_path and not Path(config.ckpt_path).is_file():

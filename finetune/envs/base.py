@@ -80,8 +80,7 @@ class PixelEnv(gymnasium.Env):
         raise NotImplementedError
 
     def _close_sim(self) -> None:
-        """Free the simulator and its renderer (called once, by `close`)."""
-        raise NotImplementedError
+        """Free the simulator and its renderer (called once, by `close`); nothing to free by default."""
 
     # --- gymnasium API ---------------------------------------------------------------------------
 

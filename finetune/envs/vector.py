@@ -61,10 +61,8 @@ DEATH_CAUSES = {
 }
 
 
-def death_cause(exitcode: int | None) -> str:
+def death_cause(exitcode: int) -> str:
     """What a worker process's exit code says about how it ended."""
-    if exitcode is None:
-        return "its pipe closed while the process still runs"
     if exitcode >= 0:
         return f"it exited with status {exitcode}"
     return DEATH_CAUSES.get(-exitcode, f"killed by signal {-exitcode} ({signal.strsignal(-exitcode)})")

@@ -182,9 +182,16 @@ def test_no_shard_directory_and_an_optimizer_flag_are_refused_in_one_line(capsys
     assert "no shard directory: pass --data.shards DIR" in err and "Traceback" not in err
     # the module runs its own two Adams: LightningCLI's --optimizer / --lr_scheduler would crash the fit's first step
     assert main(["fit", "--config", str(TINY_CONFIG), "--optimizer", "torch.optim.SGD"]) == 2
-    assert "--optimizer" in capsys.readouterr().err
+    assert "optimizer: the module optimises with its own two Adams" in capsys.readouterr().err
     assert main(["fit", "--help"]) == 0
     assert "--data.shards" in (help_text := capsys.readouterr().out) and "--optimizer" not in help_text
+
+
+def test_a_config_yaml_saved_by_an_earlier_fit_with_null_optimizer_keys_still_fits(built_shards, tmp_path):
+    saved = tmp_path / "config.yaml"  # what LightningCLI wrote before the module opted out of --optimizer
+    saved.write_text("optimizer: null\nlr_scheduler: null\n")
+    assert fit(built_shards, tmp_path / "run", "--config", str(saved), "--trainer.max_steps", "1",
+               "--trainer.limit_val_batches", "0") == 0
 
 
 def test_an_unknown_flag_names_the_help_command_that_exists(capsys):
