@@ -92,6 +92,7 @@ def test_the_median_clip_length_counts_the_clips_long_enough_to_train_on():
     shards = ShardSet("train", ["a.tar", "b.tar"], [{10: 1, 30: 2}, {20: 1, 40: 1, 5: 3}])
     assert shards.median_frames(8) == 30  # 10, 20, 30, 30, 40 (the 5-frame clips are skipped)
     assert shards.median_frames(15) == 30  # 20, 30, 30, 40
+    assert shards.median_frames(30) == 30  # 30, 30, 40: a clip of exactly seq_len frames is trained on
     assert shards.median_frames(31) == 40 and shards.median_frames(41) is None
 
 

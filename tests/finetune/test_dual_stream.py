@@ -170,3 +170,17 @@ def test_an_actor_that_gives_nan_is_refused_by_name(export_dir, tiny_config):
             parameter.fill_(float("nan"))
     with pytest.raises(DivergedError, match="non-finite action .* the agent has diverged"):
         agent.act(obs, latent, prev_action, explore=False)
+
+
+def test_the_kl_term_balances_its_two_halves_each_above_the_free_nats(export_dir, tiny_config, monkeypatch):
+    """L_KL = α · max(KL(sg(q) ‖ p), free) + (1 − α) · max(KL(q ‖ sg(p)), free), with each half averaged first."""
+    import finetune.world_model
+
+    agent = make_agent(tiny_config(free_nats=1.0, kl_balance=0.8, kl_scale=1.0), export_dir)
+    halves = (torch.full((1, 4, 8), 4.0), torch.full((1, 4, 8), 0.5))  # trains the prior; regularises the posterior
+    monkeypatch.setattr(finetune.world_model, "kl_halves", lambda *distributions: halves)
+    batch = {key: torch.as_tensor(value) for key, value in random_batch(tiny_config(), np.random.default_rng(4)).items()}
+    _, _, metrics = agent.world_model.loss(batch)
+    kl_term = metrics["model_loss"] - metrics["recon_nll"] - metrics["reward_nll"]
+    assert kl_term.item() == pytest.approx(0.8 * 4.0 + 0.2 * 1.0, abs=1e-3)  # (float32 sums) the posterior's half sits below the free nats
+    assert metrics["kl"].item() == pytest.approx(0.5)
