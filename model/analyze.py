@@ -32,7 +32,8 @@ def model_label(model: FrozenWorldModel, name: str) -> str:
     if not provenance:
         return name
     hcu = f"HCU λ₀={provenance['lambda_init']:g}" if provenance.get("hcu") else "no HCU"
-    return f"{name} ({hcu}, M={model.config.ensemble}, step {provenance.get('global_step', '?')})"
+    return (f"{name} ({hcu}, M={model.config.ensemble}, K_max={provenance.get('k_max', '?')}, "
+            f"step {provenance.get('global_step', '?')})")
 
 
 def seeded_noise(model: FrozenWorldModel, gaps: torch.Tensor, seed: int) -> torch.Tensor:
@@ -58,12 +59,14 @@ def rollout(model: FrozenWorldModel, batch: dict, heads: int, context: int, seed
     rows = {"ensemble mean": model.decode(mean_states)[0]}
     for head in range(min(heads, model.rssm.ensemble)):
         rows[f"head {head + 1}"] = model.decode(model.rssm.imagine(start, conds, head=head)[0])[0]
+    indices, context_indices = batch["indices"][0, context:].tolist(), batch["indices"][0, :context].tolist()
     return {
         "truth": frames[0, context:],
         "rows": rows,
         "gaps": gaps[0, context:].tolist(),
-        "indices": batch["indices"][0, context:].tolist(),
-        "context_indices": batch["indices"][0, :context].tolist(),
+        "indices": indices,
+        "context_indices": context_indices,
+        "frames_ahead": [index - context_indices[-1] for index in indices],  # since the last observed frame
         "disagreement": disagreement(mean_heads)[0].tolist(),  # [H]
         "id": batch["id"][0],
     }
@@ -92,7 +95,7 @@ def plot_horizon(results: list[dict], path: Path) -> None:
     for result in results:
         metrics = result["horizon"]
         left.plot(metrics["k"], metrics["disagreement"], marker="o",
-                  label=f"{result['label']}  ρ={metrics['spearman_k_disagreement']:.2f}")
+                  label=f"{result['label']}  ρ={metrics['spearman_k_disagreement']:.2f} (over the per-k means)")
         right.plot(metrics["k"], metrics["recon_mse"], marker="o", label=result["label"])
     left.set(xlabel="gap k (frames)", ylabel="ensemble disagreement", title="Disagreement against the horizon k")
     right.set(xlabel="gap k (frames)", ylabel="open-loop MSE (per pixel)", title="Prediction error from μ̄")
@@ -117,10 +120,11 @@ def plot_rollout(data: dict, title: str, path: Path) -> None:
             if c == 0:
                 axis.set_ylabel(name, fontsize=7)
             if r == 0:
-                axis.set_title(f"t{data['indices'][c]} (k={data['gaps'][c]})", fontsize=7)
+                axis.set_title(f"t{data['indices'][c]} (k={data['gaps'][c]}, +{data['frames_ahead'][c]})", fontsize=7)
             if r == len(rows) - 1:
                 axis.set_xlabel(f"u={data['disagreement'][c]:.3g}", fontsize=7)
-    fig.suptitle(f"{title}\nclip {data['id']}, imagined after frames {data['context_indices']}; u = disagreement", fontsize=8)
+    fig.suptitle(f"{title}\nclip {data['id']}, imagined after frames {data['context_indices']}; k = the step's gap, +n = "
+                 "frames since the last observed one; u = disagreement", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -130,7 +134,11 @@ def analyze(
     seq_len: int = 12, k_max: int | None = None, heads: int = 4, seed: int = 0,
 ) -> list[Path]:
     loaded = [load_frozen(path) for path in models]
+    trained = {model.export_config.get("provenance", {}).get("k_max") for model in loaded}
     k_max = k_max or loaded[0].export_config.get("provenance", {}).get("k_max") or 5
+    if len(trained) > 1:  # a K_max ablation beside the main model: gaps beyond its K_max are outside its training
+        print(f"note: the models were trained with K_max {', '.join(map(str, sorted(trained, key=str)))}; all are "
+              f"evaluated at gaps 1..{k_max} (--k-max), beyond some models' training range", file=sys.stderr)
     held_out_shards = shard_set(shards, split)
     dataset = SequenceDataset(held_out_shards, batch_size=batch_size, seq_len=seq_len, k_max=k_max,
                               num_workers=0, shuffle=False, seed=seed, batches_per_worker=batches)
@@ -150,7 +158,8 @@ def analyze(
         results.append({
             "model": str(path), "label": label, "config": model.export_config,
             "horizon": horizon_figure_data(model, held_out, k_max, seed),
-            "rollout": {key: data[key] for key in ("id", "gaps", "indices", "context_indices", "disagreement")},
+            "rollout": {key: data[key] for key in ("id", "gaps", "indices", "context_indices", "frames_ahead",
+                                                   "disagreement")},
         })
     horizon_path = out / "disagreement_vs_k.png"
     plot_horizon(results, horizon_path)

@@ -43,7 +43,9 @@ def horizon_sums(
 
 
 def horizon_metrics(sums: torch.Tensor) -> dict[str, object]:
-    """Per-k means from accumulated sums [3, k_max] and the rank correlation of k with disagreement."""
+    """Per-k means from accumulated sums [3, k_max] and the Spearman rank correlation of k with disagreement, taken
+    over the per-k means (K_max points: with K_max = 5 it moves in steps of 0.1, and says nothing of the spread
+    within each k; `count` says how many frames each mean has)."""
     sums = sums.cpu()
     counts = sums[COUNT]
     means = (sums / counts.clamp(min=1)).tolist()
@@ -58,5 +60,5 @@ def horizon_metrics(sums: torch.Tensor) -> dict[str, object]:
         "recon_mse": recon,
         "disagreement": spread,
         "spearman_k_disagreement": rho,
-        "recon_mse_all": float(sums[SQUARED_ERROR].sum() / counts.sum().clamp(min=1)),
+        "recon_mse_all": float(sums[SQUARED_ERROR].sum() / counts.sum()) if counts.sum() > 0 else math.nan,
     }

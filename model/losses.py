@@ -57,10 +57,16 @@ def disagreement(prior_mean: torch.Tensor) -> torch.Tensor:
     return spread.sum(0).mean(-1) / (heads - 1)
 
 
+def mean_over_jumps(values: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
+    """The mean of values [B, L] over the steps that have a previous frame (k ≥ 1); a sequence's first step, predicted
+    from the zero state, spans no horizon."""
+    valid = (gaps > 0).float()  # [B, L]
+    return (values * valid).sum() / valid.sum().clamp(min=1.0)
+
+
 def k_scaled_disagreement(prior_mean: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
     """k · disagreement averaged over the steps that have a previous frame (k ≥ 1): the scalar −L_HCU."""
-    valid = (gaps > 0).float()  # [B, L]
-    return (gaps.float() * disagreement(prior_mean) * valid).sum() / valid.sum().clamp(min=1.0)
+    return mean_over_jumps(gaps.float() * disagreement(prior_mean), gaps)
 
 
 def hcu_loss(prior_mean: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:

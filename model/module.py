@@ -38,7 +38,7 @@ from torch import nn
 
 from model.config import ConfigError, WorldModelConfig, saved_settings
 from model.evaluation import horizon_metrics, horizon_sums
-from model.losses import balanced_kl, disagreement, hcu_loss, reconstruction_nll
+from model.losses import balanced_kl, disagreement, hcu_loss, mean_over_jumps, reconstruction_nll
 from model.networks import preprocess
 from model.rssm import Observation, RSSMState
 from model.world_model import WorldModel
@@ -226,7 +226,7 @@ class PretrainModule(L.LightningModule):
                 "kl_balanced": kl_balanced.detach().mean(),
                 "hcu": hcu.detach(),
                 "k_disagreement": -hcu.detach(),  # the constraint of λ's dual step
-                "disagreement": disagreement(obs.prior_mean.detach()).mean(),
+                "disagreement": mean_over_jumps(disagreement(obs.prior_mean.detach()), batch["gaps"]),
                 "prior_std": obs.prior_std.detach().mean(),
                 "post_std": obs.post_std.detach().mean(),
                 "lambda": weight,

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from model.losses import balanced_kl, disagreement, gaussian_kl, hcu_loss, k_scaled_disagreement, reconstruction_nll
+from model.losses import (balanced_kl, disagreement, gaussian_kl, hcu_loss, k_scaled_disagreement, mean_over_jumps,
+                          reconstruction_nll)
 
 
 def test_hcu_equals_eq3_on_a_hand_made_example():
@@ -69,3 +70,11 @@ def test_every_head_is_trained_against_the_posterior():
 def test_reconstruction_nll_sums_over_pixels():
     target = torch.zeros(2, 3, 64, 64)
     assert torch.allclose(reconstruction_nll(torch.full_like(target, 0.5), target), torch.full((2,), 0.5 * 0.25 * 3 * 64 * 64))
+
+
+def test_the_mean_over_jumps_leaves_out_each_sequences_first_step():
+    """The logged disagreement, like the HCU loss, averages the steps with a previous frame: the first step is
+    predicted from the zero state and spans no horizon."""
+    values = torch.tensor([[100.0, 1.0, 3.0], [100.0, 2.0, 6.0]])
+    gaps = torch.tensor([[0, 1, 2], [0, 3, 1]])
+    assert mean_over_jumps(values, gaps).item() == 3.0
