@@ -105,13 +105,21 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
     source_height, source_width = first[0].shape[:2]
     fps = first[1]
     resized = [resize_frame(first[0], size, resize)]
+    decoder_error = None
     try:
-        resized += [resize_frame(frame, size, resize) for frame, _ in frames_iter]
-    except Exception as error:  # DECORDLimitReachedError: frames were recovered from corrupt data
-        raise ClipError("corrupt", f"{backend}: {str(error).strip().splitlines()[0][:200]}") from None
+        for frame, _ in frames_iter:
+            resized.append(resize_frame(frame, size, resize))
+    except Exception as error:  # DECORDLimitReachedError (frames recovered from corrupt data), a failed decoder check
+        decoder_error = f"{backend}: {str(error).strip().splitlines()[0][:200]}"
     declared = declared_frame_count(path)
     if declared and len(resized) + DECLARED_SLACK < declared:
-        raise ClipError("corrupt", f"decoded {len(resized)} of the {declared} frames the container declares")
+        # no count of the frames decoded, and the same words whether the decoder stopped at the damage or raised
+        # there: decord does either, after a varying number of frames, from run to run on the same file, and a
+        # resumed build's errors.jsonl must be byte-identical to an unbroken one's
+        raise ClipError("corrupt", f"the stream breaks off: fewer frames decode than the {declared} its container "
+                                   "declares (truncated or damaged)")
+    if decoder_error is not None:
+        raise ClipError("corrupt", decoder_error)
     if len(resized) < min_frames:
         raise ClipError("too-short", f"{len(resized)} frames, fewer than --min-frames {min_frames}")
     return DecodedClip(np.stack(resized), int(source_width), int(source_height), fps)

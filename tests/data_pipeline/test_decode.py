@@ -1,10 +1,13 @@
-"""Resizing to the shard size: squash keeps the whole frame, center-crop its central square."""
+"""Resizing to the shard size: squash keeps the whole frame, center-crop its central square; a damaged clip's
+fault is described the same however the decoder meets the damage."""
 
 import cv2
 import numpy as np
 import pytest
 
-from data_pipeline.decode import resize_frame
+from data_pipeline import decode
+from data_pipeline.decode import ClipError, decode_clip, resize_frame
+from data_pipeline.sample_data import write_webm
 
 
 def test_squash_and_center_crop():
@@ -18,3 +21,26 @@ def test_squash_and_center_crop():
     np.testing.assert_array_equal(cropped, cv2.resize(frame[:, 80:320], (64, 64), interpolation=cv2.INTER_AREA))
     with pytest.raises(ValueError, match="squash, center-crop"):
         resize_frame(frame, 64, "stretch")
+
+
+def test_a_damaged_clip_is_described_the_same_whether_the_decoder_stops_or_raises(tmp_path, monkeypatch):
+    """decord stops at a damaged packet on one run and fails a check there on another; errors.jsonl must say the
+    same either way (a resumed build is byte-identical to an unbroken one)."""
+    path = tmp_path / "clip.webm"
+    write_webm(path, np.random.default_rng(0).integers(0, 256, (36, 64, 96, 3), dtype=np.uint8))
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])  # truncated, as sample-data's broken clips
+    with pytest.raises(ClipError) as stopped:
+        decode_clip(path, 64)
+    assert stopped.value.reason == "corrupt" and "fewer frames decode than the" in stopped.value.detail
+    stopping = decode._decode_decord
+
+    def raising(clip_path):  # after fewer frames, as decord may
+        frames = stopping(clip_path)
+        yield next(frames)
+        yield next(frames)
+        raise RuntimeError("Check failed: avcodec_send_packet(dec_ctx_.get(), pkt.get()) >= 0")
+
+    monkeypatch.setattr(decode, "_decode_decord", raising)
+    with pytest.raises(ClipError) as raised:
+        decode_clip(path, 64)
+    assert (raised.value.reason, raised.value.detail) == (stopped.value.reason, stopped.value.detail)
