@@ -36,6 +36,7 @@ from model.module import PretrainModule, refuse_other_size
 from model.progress import StepProgressBar
 
 PRECISIONS = ("32-true", "32", "16-mixed", "16", "bf16-mixed", "bf16")  # each with Lightning's other name for it
+OPTIMIZER_KEYS = ("optimizer", "lr_scheduler")  # LightningCLI's, left out: the module configures its own
 
 
 # -- where a fit keeps its checkpoints ----------------------------------------------------------------
@@ -187,7 +188,7 @@ class PretrainCLI(LightningCLI):
         parser.link_arguments("data.k_max", "model.k_max")  # one K_max for sampling and validation
         # the module runs its own two Adams, so LightningCLI adds no --optimizer / --lr_scheduler; the config.yaml an
         # earlier fit saved holds both as null, and stays usable as --config (a value is refused by name)
-        for name in ("optimizer", "lr_scheduler"):
+        for name in OPTIMIZER_KEYS:
             parser.add_argument(f"--{name}", type=Any, default=None, help=argparse.SUPPRESS)
 
     def _parse_ckpt_path(self) -> None:
@@ -212,7 +213,7 @@ class PretrainCLI(LightningCLI):
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand]
-        for name in ("optimizer", "lr_scheduler"):
+        for name in OPTIMIZER_KEYS:
             if config.get(name) is not None:
                 raise ConfigError(f"{name}: the module optimises with its own two Adams (manual optimisation), so "
                                   f"no {name} can be set; --model.lr and --model.lambda_lr set their learning rates")
