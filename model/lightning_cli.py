@@ -4,8 +4,9 @@ LightningCLI turns --config files and flags into the module (model.*), the data 
 (trainer.*). PretrainCLI adds what a user needs before anything is built, each step a function below:
   resume            `--ckpt_path last`, and a checkpoint of another model or with changed settings refused by name
   trainer settings  the ones the step cannot honour (precision, accumulation, clipping, no GPU) refused by flag
-  engineering       atomic checkpoints, a checkpoint at the last step and on SIGTERM, the step progress bar,
-                    the resume notice (model/checkpointing.py, model/interrupt.py, model/progress.py)
+  engineering       atomic checkpoints, a checkpoint at the last step and on SIGTERM (on every DDP rank after the
+                    same step), the step progress bar, the resume notice (model/checkpointing.py, model/sigterm.py,
+                    model/interrupt.py, model/progress.py)
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from model.export import checkpoint_world_model, read_checkpoint
 from model.interrupt import FitInterrupted, ResumeNotice
 from model.module import PretrainModule, refuse_other_size
 from model.progress import StepProgressBar
+from model.sigterm import AgreedSigterm
 
 PRECISIONS = ("32-true", "32", "16-mixed", "16", "bf16-mixed", "bf16")  # each with Lightning's other name for it
 OPTIMIZER_KEYS = ("optimizer", "lr_scheduler")  # LightningCLI's, left out: the module configures its own
@@ -239,6 +241,7 @@ class PretrainCLI(LightningCLI):
         # a fit stopped at max_steps, max_time or by SIGTERM resumes inside its epoch; before the notice, which
         # names the checkpoint it wrote
         callbacks.append(LastStepCheckpoint())
+        callbacks.append(AgreedSigterm())  # under DDP, all ranks stop after the same step
         callbacks.append(self.notice)  # with or without a progress bar
         if type(self.trainer.strategy.checkpoint_io) is TorchCheckpointIO:  # a user's own plugin stays
             self.trainer.strategy.checkpoint_io = AtomicCheckpointIO()

@@ -1,9 +1,12 @@
-"""A test callback for the DDP test: each rank writes how many steps it took and a hash of its final weights."""
+"""Test callbacks for the DDP tests: each rank writes how many steps it took and a hash of its final weights;
+each rank sends itself SIGTERM, at a different point of the same step."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
+import signal
 from pathlib import Path
 
 import lightning as L
@@ -27,3 +30,16 @@ class RankReport(L.Callback):
                   "batches": self.batches, "weights_sha256": digest.hexdigest(),
                   "lambda": float(pl_module.hcu_weight()), "skipped": int(pl_module.scaler_skips + pl_module.nonfinite_steps)}
         (self.out_dir / f"rank{trainer.global_rank}.json").write_text(json.dumps(report))
+
+
+class SigtermEveryRank(L.Callback):
+    """SIGTERM to each rank during the third step (global_step 2): rank 0 before the batch, the others inside their
+    backward pass, while DDP's gradient all-reduce is under way."""
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if trainer.global_step == 2 and trainer.global_rank == 0:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    def on_after_backward(self, trainer, pl_module):
+        if trainer.global_step == 2 and trainer.global_rank != 0:
+            os.kill(os.getpid(), signal.SIGTERM)

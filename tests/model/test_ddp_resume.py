@@ -1,4 +1,5 @@
-"""Distributed and resumed training: DDP over gloo with 2 CPU processes, and exact resume from a checkpoint."""
+"""Distributed and resumed training: DDP over gloo with 2 CPU processes (equal steps, SIGTERM to every rank), and
+exact resume from a checkpoint."""
 
 from __future__ import annotations
 
@@ -18,21 +19,25 @@ from model.module import PretrainModule
 from conftest import REPO, TINY_CONFIG  # noqa: I001 (tests/model/conftest.py)
 
 
-def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shards, tmp_path):
-    reports = tmp_path / "reports"
-    extra = tmp_path / "callbacks.yaml"
-    extra.write_text(
-        "trainer:\n  callbacks:\n    - class_path: data_pipeline.SetEpoch\n"
-        f"    - class_path: rank_report.RankReport\n      init_args:\n        out_dir: {reports}\n"
-    )
+def ddp_fit(shards: Path, root: Path, callbacks: list[str]) -> subprocess.CompletedProcess:
+    """`hauwm pretrain fit` of tiny.yaml for 5 steps with 2 gloo ranks on the CPU, with these callbacks (YAML items)."""
+    extra = root / "callbacks.yaml"
+    extra.parent.mkdir(parents=True, exist_ok=True)
+    extra.write_text("trainer:\n  callbacks:\n    - class_path: data_pipeline.SetEpoch\n" + "".join(callbacks))
     command = [sys.executable, "-m", "model.cli", "fit", "--config", str(TINY_CONFIG), "--config", str(extra),
-               "--data.shards", str(built_shards), "--data.val_split", "train", "--data.batch_size", "2",
+               "--data.shards", str(shards), "--data.val_split", "train", "--data.batch_size", "2",
                "--data.seq_len", "6", "--data.num_workers", "0", "--trainer.limit_val_batches", "0",
                "--trainer.devices", "2", "--trainer.strategy", "ddp", "--trainer.max_steps", "5",
-               "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", str(tmp_path / "run")]
+               "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", str(root / "run")]
     python_path = [str(Path(__file__).parent), str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(python_path), "OMP_NUM_THREADS": "1", "PL_DISABLE_FORK": "1"}
-    done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=400)
+    return subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+
+
+def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shards, tmp_path):
+    reports = tmp_path / "reports"
+    done = ddp_fit(built_shards, tmp_path,
+                   [f"    - class_path: rank_report.RankReport\n      init_args:\n        out_dir: {reports}\n"])
     assert done.returncode == 0, done.stderr[-3000:]
     rank0, rank1 = (json.loads((reports / f"rank{r}.json").read_text()) for r in (0, 1))
     assert rank0["world_size"] == rank1["world_size"] == 2
@@ -40,6 +45,18 @@ def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shard
     assert rank0["batches"] == rank1["batches"] == 5
     assert rank0["weights_sha256"] == rank1["weights_sha256"]
     assert rank0["lambda"] == rank1["lambda"] != 1.0  # λ moved, identically on both ranks
+
+
+def test_sigterm_to_every_rank_at_different_points_stops_them_after_the_same_step(built_shards, tmp_path):
+    """As SLURM sends it: each rank gets SIGTERM, rank 0 before step 3's batch and rank 1 inside its backward pass
+    (rank_report.SigtermEveryRank). Lightning's own handler hung here; every rank stops after step 3, last.ckpt holds
+    step 3, and the fit exits with 143."""
+    checkpoints = "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n      init_args:\n        save_last: true\n"
+    done = ddp_fit(built_shards, tmp_path, [checkpoints, "    - class_path: rank_report.SigtermEveryRank\n"])
+    assert done.returncode == 143, done.stderr[-3000:]
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert f"terminated (SIGTERM) at step 3; resume with --ckpt_path {last} (step 3, " in done.stderr
+    assert torch.load(last, weights_only=False)["global_step"] == 3
 
 
 class ResumableBatches:

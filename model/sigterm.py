@@ -1,0 +1,49 @@
+"""`AgreedSigterm`: on SIGTERM under DDP, every rank stops after the same step, whichever ranks got the signal.
+
+SLURM (`scancel`, a job's time limit, preemption) and Kubernetes send SIGTERM to every process of a job at once.
+Lightning 2.6's handler then calls `torch.distributed.broadcast` inside the signal handler, on every rank, at
+whatever point each rank is (inside DDP's gradient all-reduce, inside the step's own broadcast of the flag): the
+collectives no longer pair up, and the fit hangs without writing a checkpoint (5 of 6 tries with 2 gloo ranks,
+docs/pretraining.md). While the fit trains, this callback stands in for that handler: the signal only sets a flag
+(and is passed on to the ranks that Lightning's launcher started from this process, as Lightning does), and after
+every step the ranks take the maximum of their flags in one all-reduce of one number. When any rank was signalled,
+all of them set Lightning's own `received_sigterm` after that same step, so that Lightning raises its
+SIGTERMException on every rank at the end of it, where `LastStepCheckpoint` writes last.ckpt. A single process
+(no DDP) keeps Lightning's handler, which works there. Lightning restores the handlers it found when the fit ends.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from types import FrameType
+
+import lightning
+import torch
+from lightning.pytorch.callbacks import Callback
+
+
+class AgreedSigterm(Callback):
+    def __init__(self) -> None:
+        self.signalled = False  # this rank got SIGTERM (from the cluster or from the rank that started it)
+        self.launcher = None
+
+    def on_train_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
+        if trainer.world_size > 1 and threading.current_thread() is threading.main_thread():
+            self.launcher = trainer.strategy.launcher
+            signal.signal(signal.SIGTERM, self.note)
+
+    def note(self, signum: int, frame: FrameType | None) -> None:
+        if not self.signalled and self.launcher is not None:
+            self.launcher.kill(signum)  # the ranks Lightning started from this one, where it did (none on a cluster)
+        self.signalled = True
+
+    def on_train_batch_end(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule, outputs, batch,
+                           batch_idx: int) -> None:
+        if trainer.world_size == 1:
+            return
+        signalled = torch.tensor(float(self.signalled), device=pl_module.device)
+        torch.distributed.all_reduce(signalled, op=torch.distributed.ReduceOp.MAX)
+        if signalled.item():
+            # Lightning's own flag (it has no setter): the training loop raises SIGTERMException after this batch
+            trainer._signal_connector.received_sigterm = True
