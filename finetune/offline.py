@@ -15,7 +15,6 @@ evaluation episodes).
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +26,8 @@ from finetune.config import FinetuneConfig
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
-from finetune.train import (CHECKPOINT, FinetuneError, close_window, exclusive, keep_best, load_dataset, next_multiple,
-                            save_checkpoint, start_run, task_env, timed_evaluation)
+from finetune.train import (CHECKPOINT, FinetuneError, LogWindow, close_window, exclusive, keep_best, load_dataset,
+                            next_multiple, save_checkpoint, start_run, task_env, timed_evaluation)
 from finetune.world_model import Latent
 
 
@@ -73,9 +72,9 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
     last_eval: dict[str, float] = {}
     bar = tqdm(total=cfg.steps, initial=counters["updates"], unit=" update", desc=f"offline {cfg.task}",
                disable=not progress, dynamic_ncols=True)
-    window = {"time": time.perf_counter(), "updates": counters["updates"], "metrics": []}
+    window = LogWindow(counters["updates"])
     while counters["updates"] < cfg.steps:
-        window["metrics"].append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
+        window.metrics.append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
         counters["updates"] += 1
         bar.update(1)
         updates = counters["updates"]

@@ -315,12 +315,12 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
     return result
 
 
-def timed_evaluation(agent: Agent, eval_env, cfg: FinetuneConfig, seed: int | None, window: dict, bar: tqdm,
+def timed_evaluation(agent: Agent, eval_env, cfg: FinetuneConfig, seed: int | None, window: LogWindow, bar: tqdm,
                      progress: bool) -> dict[str, float]:
     """A run's scheduled `evaluate`, its time left out of the log window's updates/s and the progress bar's rate."""
     started = time.perf_counter()
     result = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=seed, progress=progress)
-    window["time"] += time.perf_counter() - started
+    window.began += time.perf_counter() - started
     bar.unpause()
     return result
 
@@ -335,18 +335,28 @@ def keep_best(logdir: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[st
     save_checkpoint(logdir / BEST, agent, cfg, counters, fingerprint)
 
 
-def mean_metrics(window: list[dict[str, torch.Tensor]]) -> dict[str, float]:
+@dataclasses.dataclass
+class LogWindow:
+    """The updates since the last `train` log row: the update count and the time the window began at (for updates/s),
+    and each update's metrics (tensors on the agent's device, read once when the window closes)."""
+
+    updates: int
+    began: float = dataclasses.field(default_factory=time.perf_counter)
+    metrics: list[dict[str, torch.Tensor]] = dataclasses.field(default_factory=list)
+
+
+def mean_metrics(metrics: list[dict[str, torch.Tensor]]) -> dict[str, float]:
     """Each metric's mean over a log window of updates, read from the device in one transfer."""
-    rows = torch.stack([torch.stack(list(m.values())) for m in window]).tolist()  # [updates, metrics]
-    return {name: float(np.mean([row[i] for row in rows])) for i, name in enumerate(window[0])}
+    rows = torch.stack([torch.stack(list(m.values())) for m in metrics]).tolist()  # [updates, metrics]
+    return {name: float(np.mean([row[i] for row in rows])) for i, name in enumerate(metrics[0])}
 
 
-def close_window(window: dict, updates: int) -> dict[str, float]:
-    """A log window's mean metrics and updates/s (`updates`: the update count now); the window starts again."""
+def close_window(window: LogWindow, updates: int) -> dict[str, float]:
+    """A log window's mean metrics and updates/s (`updates`: the update count now); the window begins again."""
     now = time.perf_counter()
-    metrics = mean_metrics(window["metrics"])
-    metrics["updates_per_s"] = (updates - window["updates"]) / (now - window["time"])
-    window.update(time=now, updates=updates, metrics=[])
+    metrics = mean_metrics(window.metrics)
+    metrics["updates_per_s"] = (updates - window.updates) / (now - window.began)
+    window.updates, window.began, window.metrics = updates, now, []
     return metrics
 
 
@@ -518,12 +528,12 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
     last_eval: dict[str, float] = {}
     bar = tqdm(total=cfg.steps, initial=counters["env_step"], unit=" env step", desc=cfg.task, disable=not progress,
                dynamic_ncols=True)
-    window = {"time": time.perf_counter(), "updates": counters["updates"], "metrics": []}
+    window = LogWindow(counters["updates"])
 
     def train_due() -> None:
         updates_due = max(0, counters["env_step"] - cfg.prefill) // cfg.train_every
         while counters["updates"] < updates_due and replay.ready(cfg.seq_len):
-            window["metrics"].append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
+            window.metrics.append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
             counters["updates"] += 1
 
     while counters["env_step"] < cfg.steps:
@@ -561,7 +571,7 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
         if not parallel:
             train_due()
 
-        if counters["env_step"] >= counters["next_log"] and window["metrics"]:
+        if counters["env_step"] >= counters["next_log"] and window.metrics:
             metrics = close_window(window, counters["updates"])
             metrics["updates"] = counters["updates"]
             logger.write("train", counters["env_step"], metrics)
