@@ -26,8 +26,8 @@ from finetune.config import FinetuneConfig
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
-from finetune.train import (CHECKPOINT, FinetuneError, LogWindow, close_window, exclusive, keep_best, load_dataset,
-                            next_multiple, save_checkpoint, start_run, task_env, timed_evaluation)
+from finetune.train import (CHECKPOINT, FinetuneError, LogWindow, close_window, exclusive, load_dataset, next_multiple,
+                            save_checkpoint, scheduled_evaluation, start_run, task_env)
 from finetune.world_model import Latent
 
 
@@ -84,11 +84,8 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
             bar.set_postfix(model_loss=f"{metrics['model_loss']:.1f}", u=f"{metrics['penalty_u_imagined']:.3g}")
             counters["next_log"] = next_multiple(updates, cfg.log_every)
         if updates >= counters["next_eval"] or updates >= cfg.steps:
-            last_eval = timed_evaluation(agent, eval_env, cfg, cfg.seed + 10_000 + updates, window, bar, progress)
-            logger.write("eval", updates, last_eval)
-            keep_best(Path(cfg.logdir), agent, cfg, counters, fingerprint, last_eval, updates)
-            bar.write(f"eval at {updates} updates: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
-            counters["next_eval"] = next_multiple(updates, cfg.eval_every)
+            last_eval = scheduled_evaluation(agent, eval_env, cfg, cfg.seed + 10_000 + updates, counters, fingerprint,
+                                             logger, window, bar, progress)
         if updates >= counters["next_checkpoint"] or updates >= cfg.steps:
             counters["next_checkpoint"] = next_multiple(updates, cfg.checkpoint_every)
             save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)

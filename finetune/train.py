@@ -315,13 +315,21 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
     return result
 
 
-def timed_evaluation(agent: Agent, eval_env, cfg: FinetuneConfig, seed: int | None, window: LogWindow, bar: tqdm,
-                     progress: bool) -> dict[str, float]:
-    """A run's scheduled `evaluate`, its time left out of the log window's updates/s and the progress bar's rate."""
+def scheduled_evaluation(agent: Agent, eval_env, cfg: FinetuneConfig, seed: int | None, counters: dict[str, float],
+                         fingerprint: str, logger: Logger, window: LogWindow, bar: tqdm, progress: bool) -> dict[str, float]:
+    """A run's evaluation once its counters reach next_eval (the online and offline loops'): `evaluate`, its time
+    left out of the log window's updates/s and the progress bar's rate; written to eval.csv, kept in best.pt if it is
+    the best so far (`keep_best`), and the next one scheduled. Its step is the paradigm's (`step_unit`)."""
+    unit, key = step_unit(cfg.paradigm)
+    step = counters[key]
     started = time.perf_counter()
     result = evaluate(agent, eval_env, cfg.eval_episodes, cfg.task, seed=seed, progress=progress)
     window.began += time.perf_counter() - started
     bar.unpause()
+    logger.write("eval", step, result)
+    keep_best(Path(cfg.logdir), agent, cfg, counters, fingerprint, result, step)
+    bar.write(f"eval at {step} {unit}s: " + ", ".join(f"{k} {v:.3g}" for k, v in result.items()))
+    counters["next_eval"] = next_multiple(step, cfg.eval_every)
     return result
 
 
@@ -582,11 +590,8 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
             train_due()  # evaluations and checkpoints see every update due so far, also with parallel envs
         if eval_due:
             eval_seed = cfg.seed + 10_000 + counters["env_step"] if reseed else None
-            last_eval = timed_evaluation(agent, eval_env, cfg, eval_seed, window, bar, progress)
-            logger.write("eval", counters["env_step"], last_eval)
-            keep_best(checkpoint.parent, agent, cfg, counters, fingerprint, last_eval, counters["env_step"])
-            bar.write(f"eval at {counters['env_step']} env steps: " + ", ".join(f"{k} {v:.3g}" for k, v in last_eval.items()))
-            counters["next_eval"] = next_multiple(counters["env_step"], cfg.eval_every)
+            last_eval = scheduled_evaluation(agent, eval_env, cfg, eval_seed, counters, fingerprint, logger, window, bar,
+                                             progress)
         if counters["env_step"] >= counters["next_checkpoint"] or counters["env_step"] >= cfg.steps:
             counters["next_checkpoint"] = next_multiple(counters["env_step"], cfg.checkpoint_every)
             save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
