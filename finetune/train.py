@@ -419,6 +419,47 @@ def new_episode(obs: np.ndarray, action_shape: tuple[int, ...]) -> dict[str, lis
     return {"obs": [obs], "action": [np.zeros(action_shape, np.float32)], "reward": [0.0]}
 
 
+def extend_episodes(episodes: list[dict[str, list]], actions: np.ndarray, rewards: np.ndarray, obs: np.ndarray,
+                    done: np.ndarray, info: dict) -> None:
+    """Append one step of every env to its episode: a_t [N, A], r_t [N] and o_{t+1} [N, 3, 64, 64]. An env whose
+    episode ended (done [N]) was reset inside the step: its `obs` starts its next episode, and this episode's last
+    frame is the one the vector env keeps in info["final_obs"]."""
+    for i, episode in enumerate(episodes):
+        episode["obs"].append(info["final_obs"][i] if done[i] else obs[i])
+        episode["action"].append(actions[i])
+        episode["reward"].append(float(rewards[i]))
+
+
+def store_episodes(episodes: list[dict[str, list]], done: np.ndarray, replay: Replay, logger: Logger,
+                   counters: dict[str, float]) -> None:
+    """Add each episode that ended (done [N]) to the replay and its return and length to episodes.csv."""
+    for i in np.flatnonzero(done):
+        episode = episodes[i]
+        replay.add({"obs": np.stack(episode["obs"]), "action": np.stack(episode["action"]).astype(np.float32),
+                    "reward": np.asarray(episode["reward"], np.float32)})
+        counters["episodes"] += 1
+        logger.write("episodes", counters["env_step"], {"return": float(sum(episode["reward"])),
+                                                       "length": len(episode["reward"]) - 1})
+
+
+def reset_seeded(envs, samplers: list, run_seed: int, episodes: int, starting: np.ndarray) -> np.ndarray:
+    """Reset the envs where `starting` [N] is true with their episode seeds (`episode_seed` after `episodes` episodes
+    of the run), their prefill samplers reseeded alike; -> every env's frame [N, 3, 64, 64]."""
+    seeds = [episode_seed(run_seed, i, episodes) for i in range(len(starting))]
+    for i in np.flatnonzero(starting):
+        samplers[i].seed(seeds[i])
+    return envs.reset(seed=seeds, options={"reset_mask": starting})[0]
+
+
+def train_due(cfg: FinetuneConfig, agent: Agent, replay: Replay, counters: dict[str, float], window: LogWindow) -> None:
+    """The updates due by counters["env_step"]: one every `train_every` env steps after the prefill, each on a batch
+    from the replay (once it holds a window of seq_len); their metrics go to the log window."""
+    updates_due = max(0, counters["env_step"] - cfg.prefill) // cfg.train_every
+    while counters["updates"] < updates_due and replay.ready(cfg.seq_len):
+        window.metrics.append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
+        counters["updates"] += 1
+
+
 def task_env(cfg: FinetuneConfig, seed: int):
     """cfg.task's environment at cfg's settings (finetune.envs.make_env); an unknown task is a FinetuneError."""
     from finetune.envs import make_env
@@ -522,15 +563,10 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
     for sampler, seed in zip(samplers, seeds):
         sampler.seed(seed)
     action_shape = envs.single_action_space.shape
-
-    def reseeded(starting: np.ndarray) -> np.ndarray:
-        """Reset the envs where `starting` [N] is true with their episode seeds; all envs' frames [N, 3, 64, 64]."""
-        episode_seeds = [episode_seed(cfg.seed, i, counters["episodes"]) for i in range(cfg.num_envs)]
-        for i in np.flatnonzero(starting):
-            samplers[i].seed(episode_seeds[i])
-        return envs.reset(seed=episode_seeds, options={"reset_mask": starting})[0]
-
-    obs = reseeded(np.ones(cfg.num_envs, bool)) if reseed else envs.reset()[0]  # [N, 3, 64, 64]
+    if reseed:
+        obs = reset_seeded(envs, samplers, cfg.seed, counters["episodes"], np.ones(cfg.num_envs, bool))
+    else:
+        obs = envs.reset()[0]  # [N, 3, 64, 64]
     latent, prev_action = agent.initial(cfg.num_envs)
     episodes = [new_episode(frame, action_shape) for frame in obs]
     last_eval: dict[str, float] = {}
@@ -538,62 +574,50 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
                dynamic_ncols=True)
     window = LogWindow(counters["updates"])
 
-    def train_due() -> None:
-        updates_due = max(0, counters["env_step"] - cfg.prefill) // cfg.train_every
-        while counters["updates"] < updates_due and replay.ready(cfg.seq_len):
-            window.metrics.append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
-            counters["updates"] += 1
-
     while counters["env_step"] < cfg.steps:
+        # act: the exploring policy, or uniform random actions within the prefill
         actions, latent, prev_action = agent.act(obs, latent, prev_action, explore=True)  # [N, A]
         if counters["env_step"] < cfg.prefill:
             actions = np.stack([sampler.sample() for sampler in samplers]).astype(np.float32)
             prev_action = torch.as_tensor(actions, device=agent.device)
         if parallel:
             envs.step_async(actions)
-            train_due()  # the learner trains while the workers step and render
+            train_due(cfg, agent, replay, counters, window)  # the learner trains while the workers step and render
             obs, rewards, terminated, truncated, info = envs.step_wait()
         else:
             obs, rewards, terminated, truncated, info = envs.step(actions)
         done = terminated | truncated  # those envs were reset in this step: obs[i] starts their next episode
-        for i, episode in enumerate(episodes):
-            episode["obs"].append(info["final_obs"][i] if done[i] else obs[i])
-            episode["action"].append(actions[i])
-            episode["reward"].append(float(rewards[i]))
+        extend_episodes(episodes, actions, rewards, obs, done, info)
         counters["env_step"] += cfg.num_envs * cfg.action_repeat
         bar.update(cfg.num_envs * cfg.action_repeat)
-
-        for i in np.flatnonzero(done):
-            episode = episodes[i]
-            replay.add({"obs": np.stack(episode["obs"]), "action": np.stack(episode["action"]).astype(np.float32),
-                        "reward": np.asarray(episode["reward"], np.float32)})
-            counters["episodes"] += 1
-            logger.write("episodes", counters["env_step"], {"return": float(sum(episode["reward"])),
-                                                           "length": len(episode["reward"]) - 1})
         if done.any():
+            store_episodes(episodes, done, replay, logger, counters)
             if reseed:  # the autoreset's first frames are replaced by those of the seeded resets
-                obs = reseeded(done)
+                obs = reset_seeded(envs, samplers, cfg.seed, counters["episodes"], done)
             for i in np.flatnonzero(done):
                 episodes[i] = new_episode(obs[i], action_shape)
             latent, prev_action = agent.restart(latent, prev_action, done)
         if not parallel:
-            train_due()
+            train_due(cfg, agent, replay, counters, window)
 
-        if counters["env_step"] >= counters["next_log"] and window.metrics:
+        # log, evaluate and checkpoint when due
+        step = counters["env_step"]
+        if step >= counters["next_log"] and window.metrics:
             metrics = close_window(window, counters["updates"])
             metrics["updates"] = counters["updates"]
-            logger.write("train", counters["env_step"], metrics)
+            logger.write("train", step, metrics)
             bar.set_postfix(updates_per_s=f"{metrics['updates_per_s']:.2f}", model_loss=f"{metrics['model_loss']:.1f}")
-            counters["next_log"] = next_multiple(counters["env_step"], cfg.log_every)
-        eval_due = counters["env_step"] >= counters["next_eval"] or counters["env_step"] >= cfg.steps
-        if eval_due or counters["env_step"] >= counters["next_checkpoint"]:
-            train_due()  # evaluations and checkpoints see every update due so far, also with parallel envs
+            counters["next_log"] = next_multiple(step, cfg.log_every)
+        eval_due = step >= counters["next_eval"] or step >= cfg.steps
+        checkpoint_due = step >= counters["next_checkpoint"] or step >= cfg.steps
+        if eval_due or checkpoint_due:
+            train_due(cfg, agent, replay, counters, window)  # they see every update due so far, also with parallel envs
         if eval_due:
-            eval_seed = cfg.seed + 10_000 + counters["env_step"] if reseed else None
+            eval_seed = cfg.seed + 10_000 + step if reseed else None
             last_eval = scheduled_evaluation(agent, eval_env, cfg, eval_seed, counters, fingerprint, logger, window, bar,
                                              progress)
-        if counters["env_step"] >= counters["next_checkpoint"] or counters["env_step"] >= cfg.steps:
-            counters["next_checkpoint"] = next_multiple(counters["env_step"], cfg.checkpoint_every)
+        if checkpoint_due:
+            counters["next_checkpoint"] = next_multiple(step, cfg.checkpoint_every)
             save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
     bar.close()
     logger.close()
