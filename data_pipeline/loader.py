@@ -176,6 +176,25 @@ def collate(sequences: list[dict]) -> dict:
     }
 
 
+def usable_shards(shards: ShardSet, seq_len: int, world_size: int, workers: int) -> dict[str, int]:
+    """url -> its clips of at least `seq_len` frames (as the manifest counts them), for each shard that holds any; a
+    LoaderError when there is none, or fewer than the world_size · workers streams need (one shard each)."""
+    usable = {url: n for url, n in zip(shards.urls, shards.eligible(seq_len)) if n > 0}
+    streams = world_size * workers
+    if not usable:
+        longest = max((frames for counts in shards.frame_counts for frames in counts), default=0)
+        raise LoaderError(f"split {shards.split!r} has no clip of at least seq_len={seq_len} frames (the longest "
+                          f"has {longest}): lower seq_len (--data.seq_len of a fit, --seq-len of analyze)")
+    if len(usable) < streams:
+        fewer = (["fewer workers (--data.num_workers)"] if workers > 1 else []) + (
+            ["fewer devices (--trainer.devices)"] if world_size > 1 else [])
+        raise LoaderError(
+            f"split {shards.split!r} has {len(usable)} shards with clips of at least seq_len={seq_len} frames, "
+            f"but {world_size} ranks × {workers} workers need at least {streams} (one each): rebuild with a "
+            f"smaller --clips-per-shard" + "".join(f", or use {way}" for way in fewer))
+    return usable
+
+
 class SequenceDataset(IterableDataset):
     """Batches of variable-gap sequences from one split's shards; `len()` is the batches per rank."""
 
@@ -190,28 +209,15 @@ class SequenceDataset(IterableDataset):
                               f"(got {seq_len}, {k_max}, {batch_size})")
         _, world_size, _, _ = pytorch_worker_info()
         self.num_workers, self.workers = num_workers, max(1, num_workers)  # DataLoader workers; streams per rank
-        eligible = shards.eligible(seq_len)
-        usable = [(url, n) for url, n in zip(shards.urls, eligible) if n > 0]
-        streams = world_size * self.workers
-        if not usable:
-            longest = max((frames for counts in shards.frame_counts for frames in counts), default=0)
-            raise LoaderError(f"split {shards.split!r} has no clip of at least seq_len={seq_len} frames (the longest "
-                              f"has {longest}): lower seq_len (--data.seq_len of a fit, --seq-len of analyze)")
-        if len(usable) < streams:
-            fewer = (["fewer workers (--data.num_workers)"] if self.workers > 1 else []) + (
-                ["fewer devices (--trainer.devices)"] if world_size > 1 else [])
-            raise LoaderError(
-                f"split {shards.split!r} has {len(usable)} shards with clips of at least seq_len={seq_len} frames, "
-                f"but {world_size} ranks × {self.workers} workers need at least {streams} (one each): rebuild with a "
-                f"smaller --clips-per-shard" + "".join(f", or use {way}" for way in fewer))
-        self.streams = streams  # what a resume position means depends on it (ResumableDataLoader.load_state_dict)
-        clips = sum(n for _, n in usable)
-        self.batches_per_worker = batches_per_worker or clips // (streams * batch_size)
+        self.streams = world_size * self.workers  # what a resume position means depends on it (ResumableDataLoader)
+        self.clips_in = usable_shards(shards, seq_len, world_size, self.workers)  # url -> clips of ≥ seq_len frames
+        self.urls = list(self.clips_in)
+        clips = sum(self.clips_in.values())
+        self.batches_per_worker = batches_per_worker or clips // (self.streams * batch_size)
         if self.batches_per_worker < 1:
             raise LoaderError(f"split {shards.split!r} has {clips} clips of at least {seq_len} frames, fewer than one "
-                              f"batch of {batch_size} for each of {streams} ranks × workers; lower --data.batch_size")
-        self.urls = [url for url, _ in usable]
-        self.eligible = dict(usable)  # url -> its clips of at least seq_len frames, as the manifest counts them
+                              f"batch of {batch_size} for each of {self.streams} ranks × workers; lower "
+                              "--data.batch_size")
         self.batch_size, self.seq_len, self.k_max = batch_size, seq_len, k_max
         self.shuffle, self.shuffle_buffer, self.seed, self.continuous = shuffle, shuffle_buffer, seed, continuous
         self.split = shards.split  # for error messages: a fit reads train and validation shards
@@ -244,15 +250,15 @@ class SequenceDataset(IterableDataset):
     def __len__(self) -> int:
         return self.batches_per_worker * self.workers
 
-    def stream_urls(self, worker: int, epoch: int | None = None) -> list[str]:
-        """The shards stream `worker` of this rank reads in `epoch` (default: this one): the list shuffled with
+    def stream_urls(self, stream: int, epoch: int | None = None) -> list[str]:
+        """The shards stream `stream` of this rank reads in `epoch` (default: this one): the list shuffled with
         seed + epoch (the same order everywhere), split by node (webdataset's `split_by_node`), then every
-        `workers`-th shard from `worker` on (what `split_by_worker` does, for a stream index that need not be the
+        `workers`-th shard from `stream` on (what `split_by_worker` does, for a stream index that need not be the
         process's)."""
         urls = list(self.urls)
         if self.shuffle:
             random.Random(self.seed + (self.epoch if epoch is None else epoch)).shuffle(urls)
-        return list(wds.split_by_node(urls))[worker :: self.workers]
+        return list(wds.split_by_node(urls))[stream :: self.workers]
 
     def _sources(self, urls: list[str], worker: int) -> Iterator[dict]:
         """webdataset shard sources `{"url"}`, noting in shared memory which shard `worker` opens."""
@@ -276,8 +282,8 @@ class SequenceDataset(IterableDataset):
             for sequence in filter(None, (to_sequence(sample, self.seq_len, self.k_max, rng) for sample in samples)):
                 given[sequence["url"]] += 1
                 yield sequence
-            short = [f"{url} gave {given[url]} where the manifest counts {self.eligible[url]}"
-                     for url in urls if given[url] < self.eligible[url]]
+            short = [f"{url} gave {given[url]} where the manifest counts {self.clips_in[url]}"
+                     for url in urls if given[url] < self.clips_in[url]]
             if short:
                 raise LoaderError(f"shards are not the ones manifest.json describes (replaced, truncated or copied from "
                                   f"another build); clips of at least seq_len={self.seq_len} frames: "
@@ -293,7 +299,8 @@ class SequenceDataset(IterableDataset):
         rank, _, process_worker, _ = pytorch_worker_info()
         first_epoch, skip = self.epoch, self.skip_batches
         stream = (process_worker + skip) % self.workers
-        skipped = (skip - stream + self.workers - 1) // self.workers  # batches this stream gave
+        # batches this stream gave before the resume: of batches 0..skip−1, those i with i mod W == stream
+        skipped = (skip - stream + self.workers - 1) // self.workers
         epochs = itertools.count(first_epoch) if self.continuous else [first_epoch]
         batches = (batch for epoch in epochs for batch in self._epoch_batches(
             epoch, rank, stream, skipped if epoch == first_epoch else 0, process_worker))
@@ -381,6 +388,8 @@ class ResumableDataLoader(DataLoader):
     batches_done: Callable[[], int] = staticmethod(lambda: 0)
     epoch_ended: Callable[[], bool] = staticmethod(lambda: False)  # the epoch's last batch is done (a limit too)
     worker_priority: str = "normal"  # set by `make_dataloader`, for the stalled-worker message
+    _stream: Iterator[dict | LoaderError] | None = None  # torch's iterator of a continuous dataset, over the epochs
+    _stream_at: tuple[int, int] = (-1, 0)  # the (epoch, batches of it) `_stream` gives next
 
     def state_dict(self) -> dict:
         return {"epoch": self.dataset.epoch, "batches": int(self.batches_done()), "epoch_ended": bool(self.epoch_ended()),
@@ -399,9 +408,6 @@ class ResumableDataLoader(DataLoader):
         if state.get("epoch_ended", False) or batches >= len(self):
             epoch, batches = epoch + 1, 0
         self.dataset.resume_at(epoch, batches)
-
-    _stream: Iterator[dict | LoaderError] | None = None  # torch's iterator of a continuous dataset, over the epochs
-    _stream_at: tuple[int, int] = (-1, 0)  # the (epoch, batches of it) `_stream` gives next
 
     def __iter__(self) -> Iterator[dict]:
         """One epoch of batches. For a continuous dataset, from the stream the workers keep going into the next
