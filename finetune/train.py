@@ -129,7 +129,9 @@ def export_fingerprint(pretrained: str | Path | None) -> str:
 
 def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: str,
                     rng: np.random.Generator | None = None) -> None:
-    """`rng`: the replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
+    """Write the agent's trainable weights, its optimisers, torch's random state(s), `counters`, cfg and the export's
+    fingerprint to `path` (a .tmp file, then renamed: an interrupted write keeps the last checkpoint). `rng`: the
+    replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
     state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
              "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state(),
              "export_sha256": fingerprint}
@@ -517,6 +519,8 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
         replay = Replay(logdir / "replay", cfg.replay_capacity, rng)
     else:  # before start_run: a dataset refused must leave the run directory's config.yaml as it was
         replay = hooks.make_replay(cfg, logdir / "replay", rng, action_dim)
+    # the run's progress, saved in every checkpoint: what it has done, and when the next evaluation, checkpoint and
+    # train log row are due (keep_best adds best_return and best_at)
     counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
                 "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
     agent, fingerprint, counters = start_run(cfg, pretrained, hooks.agent_class, action_dim, counters, rng)
