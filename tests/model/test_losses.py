@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from model.losses import (balanced_kl, disagreement, gaussian_kl, hcu_loss, k_scaled_disagreement, mean_over_jumps,
-                          reconstruction_nll)
+from model.losses import (balanced_kl, disagreement, gaussian_kl, hcu_loss, k_scaled_disagreement, kl_halves,
+                          mean_over_jumps, reconstruction_nll)
 
 
 def test_hcu_equals_eq3_on_a_hand_made_example():
@@ -57,6 +57,23 @@ def test_kl_balancing_splits_the_gradient_0_8_to_the_prior():
     diff = (prior_mean - post_mean).detach()
     assert torch.allclose(prior_mean.grad, 0.8 * diff / 3, atol=1e-6)
     assert torch.allclose(post_mean.grad, 0.2 * (-diff).sum(0) / 3, atol=1e-6)
+
+
+def test_each_kl_half_trains_its_own_side_only():
+    """kl_halves: KL(sg(q) ‖ p_i) sends gradient to the prior heads' means and stds only, KL(q ‖ sg(p_i)) to the
+    posterior's only; both have the plain KL's value. (The unit stds of the balancing test above carry no gradient,
+    so a std left undetached would pass there.)"""
+    post_mean, post_std = torch.randn(2, 3, 4, requires_grad=True), (torch.rand(2, 3, 4) + 0.5).requires_grad_(True)
+    prior_mean = torch.randn(3, 2, 3, 4, requires_grad=True)  # M = 3 heads
+    prior_std = (torch.rand(3, 2, 3, 4) + 0.5).requires_grad_(True)
+    kl_prior, kl_post = kl_halves(post_mean, post_std, prior_mean, prior_std)
+    plain = gaussian_kl(post_mean, post_std, prior_mean, prior_std)
+    assert torch.allclose(kl_prior, plain) and torch.allclose(kl_post, plain)
+    for half, own, other in ((kl_prior, (prior_mean, prior_std), (post_mean, post_std)),
+                             (kl_post, (post_mean, post_std), (prior_mean, prior_std))):
+        grads = torch.autograd.grad(half.sum(), (*own, *other), retain_graph=True, allow_unused=True)
+        assert all(g is not None and g.abs().sum() > 0 for g in grads[:2])
+        assert all(g is None for g in grads[2:])
 
 
 def test_every_head_is_trained_against_the_posterior():

@@ -14,7 +14,7 @@ from lightning.pytorch.plugins import MixedPrecision
 from torch.utils.data import DataLoader
 
 from model.config import WorldModelConfig
-from model.losses import gaussian_kl, k_scaled_disagreement
+from model.losses import disagreement, gaussian_kl, k_scaled_disagreement
 from model.config import ConfigError
 from model.module import PretrainModule
 
@@ -60,6 +60,19 @@ def test_total_loss_is_eq4(small_sizes, fake_batch):
     assert torch.isclose(terms["pred"], terms["recon_nll"] + 0.5 * terms["kl_balanced"], rtol=1e-5)
     assert torch.isclose(terms["hcu"], -k_scaled_disagreement(obs.prior_mean, fake_batch["gaps"]), rtol=1e-5)
     assert terms["hcu"] < 0 and terms["kl"] > 0
+
+
+def test_the_logged_disagreement_leaves_out_each_sequences_first_step(small_sizes, fake_batch):
+    """train/ and val/disagreement average the frames that have a previous frame, as the HCU loss does: with one gap
+    k after every first frame, the logged disagreement is E[k · disagreement] / k."""
+    module = PretrainModule(small_sizes)
+    batch = {**fake_batch, "gaps": torch.where(fake_batch["gaps"] > 0, 3, 0)}
+    assert (batch["gaps"][:, 0] == 0).all() and (batch["gaps"][:, 1:] == 3).all()
+    obs = module.world_model.observe(batch["frames"], batch["gaps"], batch["num_frames"])
+    terms = module.compute_losses(batch, obs)
+    torch.testing.assert_close(terms["disagreement"], terms["k_disagreement"] / 3)
+    every_step = disagreement(obs.prior_mean.detach()).mean()
+    assert not torch.isclose(every_step, terms["disagreement"])  # the test could tell the first step in or out
 
 
 def test_the_kl_averages_every_head_against_the_posterior(small_sizes, fake_batch):
