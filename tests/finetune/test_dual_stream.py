@@ -95,6 +95,27 @@ def test_acting_filters_an_episode_as_training_filters_a_window(export_dir, tiny
             assert torch.allclose(stream.deter, whole.deter[:, t], atol=1e-5), t
 
 
+def test_acting_restarts_the_frozen_stream_of_the_envs_whose_episode_ended_only(export_dir, tiny_config, monkeypatch):
+    """With several envs, the zero state (an episode's first step, gap-0 embedding) is told apart per env: env 1
+    restarts while env 0 goes on, and each gets what filtering its own frames gives."""
+    monkeypatch.setattr(torch, "randn_like", torch.zeros_like)  # posterior samples at their means: no RNG order
+    cfg = tiny_config(noise_std=0.0, batch_size=2, seq_len=3)
+    agent = make_agent(cfg, export_dir)
+    wm = agent.world_model
+    batch = {k: torch.as_tensor(v) for k, v in random_batch(cfg, np.random.default_rng(5)).items()}
+    batch["action"][:, 0] = 0
+    window, _ = wm.observe(batch["obs"], batch["action"])  # env 0's episode: all three frames
+    fresh, _ = wm.observe(batch["obs"][1:, 2:], torch.zeros(1, 1, ACTION_DIM))  # env 1's new episode: its last frame
+    latent, prev_action = agent.initial(2)
+    for t in range(2):
+        latent = wm.observe_step(latent, batch["action"][:, t], batch["obs"][:, t])
+    latent, prev_action = agent.restart(latent, batch["action"][:, 2], np.array([False, True]))
+    latent = wm.observe_step(latent, prev_action, batch["obs"][:, 2])
+    for stream, going_on, restarted in ((latent.frozen, window.frozen, fresh.frozen), (latent.new, window.new, fresh.new)):
+        assert torch.allclose(stream.deter[0], going_on.deter[0, 2], atol=1e-5)
+        assert torch.allclose(stream.deter[1], restarted.deter[0, 0], atol=1e-5)
+
+
 def test_imagination_advances_the_frozen_stream_with_its_ensemble_mean(export_dir, tiny_config):
     torch.manual_seed(0)
     cfg = tiny_config(noise_std=0.0)
@@ -169,6 +190,18 @@ def test_an_actor_that_gives_nan_is_refused_by_name(export_dir, tiny_config):
         for parameter in agent.behavior.actor.parameters():
             parameter.fill_(float("nan"))
     with pytest.raises(DivergedError, match="non-finite action .* the agent has diverged"):
+        agent.act(obs, latent, prev_action, explore=False)
+
+
+def test_one_envs_non_finite_action_is_refused_too(export_dir, tiny_config):
+    """A NaN in one env's row (its state diverged; the others' actions are finite) is refused as well."""
+    agent = make_agent(tiny_config(), export_dir)
+    latent, prev_action = agent.initial(2)
+    prev_action[1] = float("nan")  # env 1's previous action: its new-stream state and action turn NaN
+    obs = np.zeros((2, 3, 64, 64), np.uint8)
+    action = agent._policy_step(torch.as_tensor(obs), latent, prev_action, False)[1]
+    assert torch.isfinite(action[0]).all() and not torch.isfinite(action[1]).any()  # one row only
+    with pytest.raises(DivergedError, match="non-finite action"):
         agent.act(obs, latent, prev_action, explore=False)
 
 

@@ -293,3 +293,13 @@ def test_pixel_env_stops_repeating_at_a_terminal():
     _, reward, terminated, truncated, _ = env.step(np.zeros(2))
     assert (reward, terminated, truncated) == (2.0, True, False)
     np.testing.assert_allclose(env.native_actions, [[5.0, 0.0]] * 2)
+
+
+def test_pixel_env_refuses_an_action_with_any_non_finite_entry():
+    """One NaN or inf among finite entries is refused as well, before the simulator sees anything."""
+    env = _Counter(action_repeat=2)
+    env.reset()
+    for bad in ([np.nan, 0.0], [0.0, np.inf], [-np.inf, 0.5]):
+        with pytest.raises(ValueError, match="counter: non-finite action"):
+            env.step(np.array(bad))
+    assert env.native_actions == []

@@ -69,10 +69,12 @@ def test_k1_embedding_takes_the_median_length_of_the_exports_pre_training_clips(
         (lambda d: (shutil.rmtree(d), d.write_bytes(b"a checkpoint")), "is a file, not an export directory"),
         (lambda d: _edit_config(d, provenance=[]), "\"provenance\" is \\[\\], not an object"),
         (lambda d: _edit_config(d, provenance={"train_clip_length": -3}), "train_clip_length -3 is not a positive"),
+        (lambda d: _edit_config(d, provenance={"train_clip_length": 0}), "train_clip_length 0 is not a positive"),
         (lambda d: _edit_config(d, provenance={"train_clip_length": 10**400}), "train_clip_length 1000.* is not a positive"),
     ],
     ids=["no-dir", "no-config", "no-weights", "bad-json", "wrong-version", "wrong-shapes", "bad-embedding", "a-pickle",
-         "normalisation-text", "shape-number", "feature-dim-text", "a-file", "provenance-list", "negative-length", "huge-length"],
+         "normalisation-text", "shape-number", "feature-dim-text", "a-file", "provenance-list", "negative-length", "zero-length",
+         "huge-length"],
 )
 def test_bad_exports_fail_clearly(export_copy, damage, message):
     damage(export_copy)
