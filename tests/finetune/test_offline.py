@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -39,6 +40,19 @@ def test_max_std_is_the_common_std_norm_when_heads_agree_and_grows_with_their_st
     assert torch.allclose(uncertainty("max_std", mean, std, sample), std[0].norm(dim=-1))
     values = [uncertainty("max_std", *heads(0.0, std_spread)).mean().item() for std_spread in (0.0, 0.2, 1.0)]
     assert values[0] < values[1] < values[2]
+
+
+def test_each_penalty_on_a_hand_made_example():
+    """u of the three kinds on M = 2 heads, S = 2 latent dims, worked by hand from the formulas of finetune/penalty.py."""
+    mean = torch.tensor([[[0.0, 0.0]], [[6.0, 8.0]]])  # [M, N = 1, S]: μ̄ = (3, 4), each head ‖μ_i − μ̄‖ = 5 away
+    std = torch.tensor([[[0.6, 0.8]], [[1.5, 2.0]]])  # ‖σ_i‖ = 1 and 2.5
+    sample = torch.tensor([[3.0, 4.0]])  # s̃_{t+1}: z = (5, 5) under head 0, (−2, −2) under head 1
+    assert uncertainty("mean_disagreement", mean, std, sample).item() == pytest.approx(5.0)  # mean_i ‖μ_i − μ̄‖₂
+    assert uncertainty("max_std", mean, std, sample).item() == pytest.approx(2.5)  # max_i ‖σ_i‖₂
+    # log N summed over S: head 0 −25 − ln(0.6 · 0.8) − ln 2π, head 1 −4 − ln(1.5 · 2) − ln 2π; the population std
+    # of two values is half their distance
+    loglik_std = (21 - math.log(3.0 / 0.48)) / 2
+    assert uncertainty("loglik_std", mean, std, sample).item() == pytest.approx(loglik_std, rel=1e-5)
 
 
 def test_every_penalty_has_a_gradient_to_the_heads_means_except_max_std():
@@ -162,6 +176,38 @@ def test_the_frozen_disagreement_term_gives_the_actor_no_gradient(export_dir, ti
     (rewards_without, grads_without), (rewards_with, grads_with) = results
     assert (rewards_with < rewards_without - 1e-6).all()  # the term is there
     assert all(torch.allclose(a, b, atol=1e-6) for a, b in zip(grads_without, grads_with))
+
+
+def test_the_penalty_measured_on_the_dataset_steps_each_posterior_state_with_its_own_recorded_action(tiny_config):
+    """penalty_u_dataset: u of one step of every head from s̃_t with a_t, which the replay holds at entry t + 1."""
+    cfg = tiny_config(paradigm="offline", agent="scratch", model_heads=3, penalty="mean_disagreement")
+    agent = OfflineAgent(cfg, 2)
+    generator = np.random.default_rng(0)
+    obs = torch.as_tensor(generator.integers(0, 256, (2, 4, 3, 64, 64), dtype=np.uint8))
+    actions = torch.as_tensor(generator.uniform(-1, 1, (2, 4, 2)).astype(np.float32))
+    with torch.no_grad():
+        start, _ = agent.world_model.observe(obs, actions)
+        agent.penalty.measure_dataset(start, actions)
+        states = type(start.new)(start.new.deter[:, :-1].flatten(0, 1), start.new.stoch[:, :-1].flatten(0, 1))
+
+        def u_with(step_actions):
+            _, mean, std = agent.world_model.rssm.img_step(states, step_actions.flatten(0, 1))
+            return uncertainty("mean_disagreement", mean, std, mean[0]).mean()
+
+        expected, misaligned = u_with(actions[:, 1:]), u_with(actions[:, :-1])
+    torch.testing.assert_close(agent.penalty.metrics["penalty_u_dataset"], expected)
+    assert not torch.isclose(expected, misaligned)  # the test could tell the two alignments apart
+
+
+def test_the_mean_rule_draws_around_the_mean_of_the_heads_means_with_the_mean_of_their_stds(tiny_config, monkeypatch):
+    from finetune.world_model import DualStreamWorldModel
+
+    world_model = DualStreamWorldModel(tiny_config(agent="scratch", model_heads=2, imagine_heads="mean", deter=8, stoch=3),
+                                       2, None, None)
+    monkeypatch.setattr(torch, "randn_like", torch.ones_like)  # a draw one std above the mean
+    mean = torch.tensor([0.0, 2.0])[:, None, None].expand(2, 5, 3)
+    std = torch.tensor([1.0, 3.0])[:, None, None].expand(2, 5, 3)
+    assert torch.allclose(world_model.next_stoch(mean, std), torch.full((5, 3), 1.0 + 2.0))  # μ̄ = 1, σ̄ = 2
 
 
 @pytest.mark.parametrize("rule", ["random", "mean"])
