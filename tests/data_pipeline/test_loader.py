@@ -96,6 +96,18 @@ def test_the_median_clip_length_counts_the_clips_long_enough_to_train_on():
     assert shards.median_frames(31) == 40 and shards.median_frames(41) is None
 
 
+def test_the_datamodule_records_the_median_length_of_the_clips_it_trains_on(built_shards):
+    """train_clip_length (which the export records for fine-tuning's k = 1 embedding) leaves out the train clips
+    shorter than seq_len, as training does."""
+    train = shard_set(built_shards, "train")
+    lengths = sorted(frames for counts in train.frame_counts for frames, n in counts.items() for _ in range(n))
+    seq_len = lengths[3] + 1  # the four shortest train clips are too short to train on
+    assert train.median_frames(seq_len) != train.median_frames(1)  # the test could tell them in or out
+    module = ShardDataModule(str(built_shards), batch_size=2, seq_len=seq_len, num_workers=0)
+    module.setup("fit")
+    assert module.train_clip_length == train.median_frames(seq_len)
+
+
 def test_two_ranks_by_two_workers_get_equal_batch_counts_over_uneven_shards(built_shards, monkeypatch):
     shards = shard_set(built_shards, "train")
     assert sorted(shards.eligible(8)) == [2, 4, 4, 4, 4]  # uneven

@@ -10,8 +10,10 @@ import torch
 
 from finetune.cli import best_kept, main
 from finetune.config import load_config
-from finetune.train import (BEST, CHECKPOINT, FinetuneError, build_agent, exclusive, export_fingerprint, load_checkpoint,
-                            resolve_device, save_checkpoint, train)
+from finetune.agent import Agent
+from finetune.envs.base import PixelEnv
+from finetune.train import (BEST, CHECKPOINT, FinetuneError, build_agent, evaluate, exclusive, export_fingerprint,
+                            load_checkpoint, resolve_device, save_checkpoint, train)
 from model.export import export_frozen
 from model.world_model import WorldModel
 
@@ -224,3 +226,35 @@ def test_the_prefill_acts_at_random_and_the_agent_acts_after_it(export_dir, tiny
     for actions in by_env:
         assert len(actions) == cfg.steps // (num_envs * cfg.action_repeat)
         assert not np.isclose(actions[:random_steps], 0.123).any() and np.isclose(actions[random_steps:], 0.123).all()
+
+
+class _SolvedMidway(PixelEnv):
+    """A stand-in simulator: reward 1 per simulator step, success at the second agent step only."""
+
+    def __init__(self) -> None:
+        super().__init__("solved_midway", 0, np.array([-1.0, -1.0]), np.array([1.0, 1.0]), 64, action_repeat=2,
+                         time_limit=4)
+        self.sim_steps = 0
+
+    def _seed_sim(self, seed):
+        pass
+
+    def _reset_sim(self):
+        self.sim_steps = 0
+
+    def _step_sim(self, action):
+        self.sim_steps += 1
+        return 1.0, False, False, self.sim_steps in (3, 4)  # the two simulator steps of agent step 2
+
+    def _render_frame(self):
+        return np.zeros((64, 64, 3), np.uint8)
+
+
+def test_evaluation_counts_an_episode_solved_at_any_step_and_normalises_its_return_by_table_4(tiny_config):
+    """An episode is a success if the task was solved at any step (not only at its last); the return sums every
+    simulator step's reward, and dmc_cheetah_run's Table 4 references (random 71, expert 821) normalise it."""
+    agent = Agent(tiny_config(agent="scratch"), action_dim=2)
+    result = evaluate(agent, _SolvedMidway(), episodes=2, task="dmc_cheetah_run", seed=0)
+    assert result["success_rate"] == 1.0
+    assert result["return"] == 8.0 and result["return_std"] == 0.0  # 4 agent steps × 2 simulator steps × 1
+    assert result["normalised_return"] == pytest.approx((8.0 - 71.0) / (821.0 - 71.0))

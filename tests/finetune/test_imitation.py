@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -9,8 +10,9 @@ import torch
 
 from model.config import ConfigError
 from finetune.discriminator import Discriminator
-from finetune.imitation import ImitationAgent, train_imitation
+from finetune.imitation import ImitationAgent, MixedReplay, demos_per_batch, train_imitation
 from finetune.envs import make_env
+from finetune.replay import Replay
 from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, FinetuneError, build_agent, episode_seed
 from finetune.world_model import Latent
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
@@ -90,6 +92,23 @@ def test_the_gradient_penalty_enters_the_discriminators_gradient_in_proportion_t
     penalty_part = gradients[1.0] - gradients[0.0]
     assert penalty_part.abs().max() > 1e-6
     torch.testing.assert_close(gradients[10.0] - gradients[0.0], 10 * penalty_part, rtol=1e-4, atol=1e-6)
+
+
+def test_a_mixed_batch_holds_the_agents_windows_first_and_the_demonstrations_last(random_episodes):
+    """ImitationAgent takes the last demos_per_batch windows of a batch as the expert's: MixedReplay puts them there."""
+    own, demos = Replay(None, 1000, np.random.default_rng(0)), Replay(None, 1000, np.random.default_rng(1))
+    for replay, reward in ((own, 1.0), (demos, 2.0)):
+        for episode in random_episodes(2, 10, 3):
+            replay.add({**episode, "reward": np.full_like(episode["reward"], reward)})  # which replay a window is from
+    batch = MixedReplay(own, demos, demos_per_batch=2).sample(5, 4)
+    assert batch["obs"].shape[:2] == (5, 4)
+    np.testing.assert_array_equal(batch["reward"][:, 0], [1.0, 1.0, 1.0, 2.0, 2.0])
+
+
+def test_demonstration_windows_per_batch_are_the_nearest_share_leaving_one_of_each_kind():
+    for batch_size, fraction, expected in ((16, 0.5, 8), (16, 0.3, 5), (4, 0.05, 1), (4, 0.95, 3)):  # 4.8 → 5
+        settings = SimpleNamespace(batch_size=batch_size, demo_fraction=fraction)
+        assert demos_per_batch(settings) == expected, (batch_size, fraction)
 
 
 def imitation_config(tiny_config, logdir, steps, **extra):

@@ -64,6 +64,17 @@ def test_capacity_drops_the_oldest_episodes_and_disk_reload_keeps_the_newest(tmp
     assert (tmp_path / "000005-20.npz").exists()  # numbering continues after the reload
 
 
+def test_episodes_that_fill_the_capacity_exactly_are_all_kept_and_reloaded(tmp_path):
+    """The capacity is the most steps held: episodes that sum to it exactly all stay, in memory and on reload."""
+    replay = Replay(tmp_path, capacity=40, rng=np.random.default_rng(0))
+    for i in range(2):
+        replay.add(episode(i + 1, 20))
+    assert replay.num_steps == 40 and len(replay.episodes) == 2
+    assert Replay(tmp_path, capacity=40, rng=np.random.default_rng(0)).load() == 2
+    replay.add(episode(3, 1))  # one step over: the oldest episode goes
+    assert replay.num_steps == 21 and [int(ep["obs"][0, 0, 0, 0]) for ep in replay.episodes] == [2, 3]
+
+
 def test_sampling_without_a_long_enough_episode_says_what_to_change(tmp_path):
     replay = Replay(None, capacity=100, rng=np.random.default_rng(0))
     replay.add(episode(1, 5))
