@@ -62,7 +62,8 @@ class Replay:
         self._keep(episode)
 
     def load(self) -> int:
-        """Reload the newest episodes on disk that fit the capacity (for resume); returns how many."""
+        """Reload the newest episodes on disk that fit the capacity, and at least the newest one, as `_keep` holds them
+        (for resume); returns how many."""
         if self.directory is None or not self.directory.is_dir():
             return 0
         paths = episode_files(self.directory)
@@ -70,7 +71,7 @@ class Replay:
         chosen, steps = [], 0
         for path in reversed(paths):
             length = int(path.stem.split("-")[1])
-            if steps + length > self.capacity:
+            if chosen and steps + length > self.capacity:  # the newest stays, as in _keep
                 break
             chosen.append(path)
             steps += length

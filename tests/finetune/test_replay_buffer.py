@@ -75,6 +75,18 @@ def test_episodes_that_fill_the_capacity_exactly_are_all_kept_and_reloaded(tmp_p
     assert replay.num_steps == 21 and [int(ep["obs"][0, 0, 0, 0]) for ep in replay.episodes] == [2, 3]
 
 
+def test_an_episode_longer_than_the_capacity_is_kept_alone_and_reloaded_alike(tmp_path):
+    """The newest episode always stays, even when it alone exceeds the capacity; a resumed run reloads it too (it
+    reloaded nothing, so the resumed run made no update until its next episode ended)."""
+    replay = Replay(tmp_path, capacity=10, rng=np.random.default_rng(0))
+    replay.add(episode(1, 5))
+    replay.add(episode(2, 20))
+    assert [int(ep["obs"][0, 0, 0, 0]) for ep in replay.episodes] == [2] and replay.ready(8)
+    reloaded = Replay(tmp_path, capacity=10, rng=np.random.default_rng(0))
+    assert reloaded.load() == 1 and reloaded.num_steps == replay.num_steps == 20
+    assert [int(ep["obs"][0, 0, 0, 0]) for ep in reloaded.episodes] == [2] and reloaded.ready(8)
+
+
 def test_sampling_without_a_long_enough_episode_says_what_to_change(tmp_path):
     replay = Replay(None, capacity=100, rng=np.random.default_rng(0))
     replay.add(episode(1, 5))
