@@ -30,6 +30,7 @@ SETTINGS_FILE = "build.json"
 RETRYABLE = ("missing", "timeout", "crashed")  # failures of the moment: the file may arrive, the machine be less busy
 MAX_MEMBER_NAME = 100  # bytes of a tar member's name in the USTAR format the shards are written in
 MAX_SIZE = 512  # --size: the world model reads 64×64; SSv2's clips are 240 pixels high
+MAX_TIMEOUT = 86_400.0  # --timeout: a day; the wait for a decoder must stay a number the OS can wait for (not inf)
 
 
 class BuildError(Exception):
@@ -277,8 +278,9 @@ def validate(config: BuildConfig) -> None:
         raise BuildError(f"--quality must lie in 1..100, got {config.quality}")
     if not 0 <= config.max_error_rate <= 1:
         raise BuildError(f"--max-error-rate is a fraction of the clips and must lie in 0..1, got {config.max_error_rate}")
-    if not config.timeout > 0:
-        raise BuildError(f"--timeout (seconds one clip may take to decode) must be positive, got {config.timeout}")
+    if not 0 < config.timeout <= MAX_TIMEOUT:
+        raise BuildError(f"--timeout (seconds one clip may take to decode) must be positive and at most {MAX_TIMEOUT:g} "
+                         f"(a day), got {config.timeout}")
 
 
 def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:

@@ -3,6 +3,7 @@
 import contextlib
 import dataclasses
 import json
+import math
 import os
 import shutil
 import signal
@@ -206,7 +207,9 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
         build(config, log=quiet)
     config.videos = sample_ssv2 / "videos"
     for setting, value, message in (("max_error_rate", 1.5, "--max-error-rate .* 0..1, got 1.5"),
-                                    ("timeout", 0.0, "--timeout .* must be positive, got 0.0"),
+                                    ("timeout", 0.0, "--timeout .* must be positive and at most 86400 .*, got 0.0"),
+                                    ("timeout", math.inf, "--timeout .* at most 86400 .*, got inf"),
+                                    ("timeout", 1e300, "--timeout .* at most 86400 .*, got 1e[+]300"),
                                     ("num_parts", 0, "--num-parts must be at least 1, got 0"),
                                     ("size", 100_000, "--size 100000: frames are at most 512 pixels a side")):
         with pytest.raises(BuildError, match=message):
