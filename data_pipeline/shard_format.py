@@ -39,6 +39,10 @@ BUILD_HINT = ("build it with `hauwm shards build --annotations DIR --videos DIR 
               "(or `hauwm shards sample-data` first for the built-in data)")
 REBUILD_MANIFEST = ("re-run the `hauwm shards build` command that made the directory: it keeps the finished shards "
                     "and writes manifest.json and errors.jsonl again")
+# the entries of a manifest its readers use (inspect, preview, the loader, `hauwm pretrain`), part by part
+SETTINGS_KEYS = ("size", "resize", "encoding", "quality")
+SPLIT_KEYS = ("clips", "frames", "bytes", "errors", "shards")
+SHARD_KEYS = ("name", "clips", "frames", "bytes", "sha256", "frame_counts")
 NPY_HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
 
 
@@ -67,6 +71,8 @@ def read_manifest(directory: str | Path) -> dict:
     if manifest["format_version"] != FORMAT_VERSION:
         raise ShardDirError(f"{path} is of shard format {manifest['format_version']!r}; this HAUWM reads format "
                             f"{FORMAT_VERSION}: build the shards again with it")
+    if missing := missing_entry(manifest):  # valid JSON, but cut short or edited: a KeyError deep in a reader
+        raise ShardDirError(f"{path} is damaged (it has no {missing}); {REBUILD_MANIFEST}")
     if not manifest["splits"]:
         raise ShardDirError(f"{path} lists no split: its build found no clip; build again with label files that list "
                             "clips (`hauwm shards build --split ...`)")
@@ -75,6 +81,28 @@ def read_manifest(directory: str | Path) -> dict:
         raise ShardDirError(f"{path} lists shard {next(n for n in names if names.count(n) > 1)} more than once; "
                             "build the shards again, naming each --split once")
     return manifest
+
+
+def missing_entry(manifest: dict) -> str | None:
+    """The first entry a manifest lacks (or holds as something else than a mapping or list), named by its path,
+    e.g. `splits.train.shards[0].sha256`; None when it has them all."""
+    parts: list[tuple[str, object, tuple[str, ...]]] = [("settings", manifest["settings"], SETTINGS_KEYS),
+                                                        ("errors", manifest["errors"], ("total",))]
+    splits = manifest["splits"]
+    if not isinstance(splits, dict):
+        return "splits (a mapping of split names)"
+    for split, counts in splits.items():
+        parts.append((f"splits.{split}", counts, SPLIT_KEYS))
+        shards = counts.get("shards") if isinstance(counts, dict) else None
+        if "shards" in (counts if isinstance(counts, dict) else {}) and not isinstance(shards, list):
+            return f"splits.{split}.shards (a list of shards)"
+        parts += [(f"splits.{split}.shards[{i}]", shard, SHARD_KEYS) for i, shard in enumerate(shards or [])]
+    for where, part, keys in parts:
+        if not isinstance(part, dict):
+            return f"{where} (a mapping)"
+        if missing := [key for key in keys if key not in part]:
+            return f"{where}.{missing[0]}"
+    return None
 
 
 def encode_frames(frames: np.ndarray, encoding: str, quality: int = 90) -> bytes:

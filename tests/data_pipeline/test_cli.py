@@ -42,6 +42,7 @@ def test_inspect_without_manifest_says_how_to_build(tmp_path, capsys):
     ("{bad", "is damaged (not JSON: "),
     ('{"name": "something else"}', "is not a shard manifest (it has no format_version, settings, splits, errors)"),
     ('{"format_version": 99, "settings": {}, "splits": {}, "errors": {}}', "is of shard format 99; this HAUWM reads format 1"),
+    ('{"format_version": 1, "settings": {}, "splits": {"train": {}}, "errors": {}}', "is damaged (it has no settings.size)"),
 ])
 def test_a_damaged_or_foreign_manifest_is_named_by_every_reader(built_shards, tmp_path, capsys, manifest, message):
     shards = tmp_path / "shards"
@@ -53,6 +54,28 @@ def test_a_damaged_or_foreign_manifest_is_named_by_every_reader(built_shards, tm
     assert pretrain(["fit", "--config", "configs/pretrain/tiny.yaml", "--data.shards", str(shards)]) == 2
     err = capsys.readouterr().err
     assert err.count(f"{shards / 'manifest.json'} {message}") == 3 and "Traceback" not in err
+
+
+@pytest.mark.parametrize(("cut", "missing"), [
+    (lambda m: m["settings"].pop("size"), "settings.size"),
+    (lambda m: m["splits"]["train"].pop("shards"), "splits.train.shards"),
+    (lambda m: m["splits"]["validation"]["shards"][0].pop("frame_counts"), "splits.validation.shards[0].frame_counts"),
+    (lambda m: m["splits"].update(train=[]), "splits.train (a mapping)"),
+    (lambda m: m.update(errors=None), "errors (a mapping)"),
+])
+def test_a_manifest_that_lacks_an_entry_is_named_with_it_not_a_key_error(built_shards, tmp_path, capsys, cut, missing):
+    shards = tmp_path / "shards"
+    shutil.copytree(built_shards, shards)
+    manifest = json.loads((shards / "manifest.json").read_text())
+    cut(manifest)  # valid JSON still: edited by hand, or written by something else
+    (shards / "manifest.json").write_text(json.dumps(manifest))
+    assert main(["inspect", str(shards), "--verify"]) == 2
+    assert main(["preview", str(shards), "--out", str(tmp_path / "p.png")]) == 2
+    from model.cli import main as pretrain
+    assert pretrain(["analyze", "--model", "nowhere", "--shards", str(shards), "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert err.count(f"{shards / 'manifest.json'} is damaged (it has no {missing}); re-run the `hauwm shards build`") == 3
+    assert "Traceback" not in err
 
 
 def test_a_damaged_errors_file_is_reported_and_fails_verify(built_shards, tmp_path, capsys):
