@@ -98,9 +98,14 @@ def main(argv: list[str] | None = None) -> int:
     command = argv[0]
     try:
         if command in LIGHTNING_COMMANDS:
+            from lightning.fabric.utilities.exceptions import MisconfigurationException
+
             from model.lightning_cli import lightning_cli
 
-            lightning_cli(argv)
+            try:
+                lightning_cli(argv)
+            except MisconfigurationException as err:  # a --trainer value Lightning itself refuses (devices 0, max_steps -5)
+                raise ConfigError(f"a --trainer setting Lightning refuses: {err}") from None
             return 0
         if command == "export":
             return export_command(argv[1:])

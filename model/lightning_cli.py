@@ -171,6 +171,13 @@ def settle_trainer(trainer, subcommand: str) -> None:
         raise ConfigError(f"--trainer.accumulate_grad_batches {trainer.accumulate_grad_batches}: the step "
                           "optimises by itself (skipped steps, λ's dual step) and accumulates nothing: raise "
                           "--data.batch_size instead")
+    interval = trainer.val_check_interval  # steps (int), a fraction of an epoch (float), or a time
+    if isinstance(interval, int | float) and not isinstance(interval, bool) and not interval > 0:  # Lightning divides by it
+        raise ConfigError(f"--trainer.val_check_interval {interval}: validate every N >= 1 training steps, or a fraction "
+                          "> 0 of an epoch (null: once an epoch)")
+    if trainer.check_val_every_n_epoch is not None and trainer.check_val_every_n_epoch < 1:
+        raise ConfigError(f"--trainer.check_val_every_n_epoch {trainer.check_val_every_n_epoch}: validate every N >= 1 "
+                          "epochs, or null to validate by --trainer.val_check_interval steps alone")
     if trainer.gradient_clip_val is not None:
         raise ConfigError("--trainer.gradient_clip_val: the step clips its own gradients: set --model.grad_clip")
     if str(trainer.precision) in ("16-mixed", "16") and no_cuda:

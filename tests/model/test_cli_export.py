@@ -167,6 +167,11 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--trainer.precision", "null", "--data.k_max", "0"], "k_max"),  # no precision is Lightning's 32-true
         (["--trainer.accumulate_grad_batches", "2"], "accumulate_grad_batches 2: the step optimises by itself"),
         (["--trainer.gradient_clip_val", "1"], "the step clips its own gradients: set --model.grad_clip"),
+        # Lightning divides by these after the first step (ZeroDivisionError), or refuses them in a traceback
+        (["--trainer.val_check_interval", "0"], "--trainer.val_check_interval 0: validate every N >= 1 training steps"),
+        (["--trainer.check_val_every_n_epoch", "0"], "--trainer.check_val_every_n_epoch 0: validate every N >= 1"),
+        (["--trainer.max_steps", "-5"], "a --trainer setting Lightning refuses: `max_steps` must be a non-negative"),
+        (["--trainer.devices", "0"], "a --trainer setting Lightning refuses: `Trainer(devices='0')` value is not"),
     ],
 )
 def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, capsys, flags, message):
