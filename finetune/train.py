@@ -536,7 +536,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     else:
         seeds = [episode_seed(cfg.seed, i, counters["episodes"]) for i in range(cfg.num_envs)]
     eval_env = task_env(cfg, cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]))
-    replay.load()
+    replay.load(action_dim)
     logger = Logger(logdir)
     try:
         envs = make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)

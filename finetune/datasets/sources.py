@@ -105,7 +105,7 @@ def replay_episodes(rundir: str | Path, limit: int | None = None) -> tuple[dict[
     at a time limit (none of the paper's tasks has terminal states).
     """
     from finetune.envs.registry import episode_time_limit
-    from finetune.replay import episode_files, read_episode
+    from finetune.replay import episode_files
 
     cfg = run_config(rundir)
     paths = episode_files(Path(rundir) / "replay")
@@ -118,4 +118,16 @@ def replay_episodes(rundir: str | Path, limit: int | None = None) -> tuple[dict[
     settings = {"task": cfg.task, "action_repeat": cfg.action_repeat,
                 "time_limit": episode_time_limit(cfg.task, cfg.action_repeat, cfg.time_limit),
                 "fast_render": cfg.fast_render, "seed": cfg.seed, "agent": cfg.agent, "run": str(rundir)}
-    return settings, len(paths), (read_episode(path) for path in paths)
+    return settings, len(paths), consistent_episodes(paths)
+
+
+def consistent_episodes(paths: list[Path]) -> Iterator[dict[str, np.ndarray]]:
+    """The replay episodes in `paths`, each of the first one's frame size and action width (ReplayError if not: a
+    dataset's episodes must fit its one action space)."""
+    from finetune.replay import read_episode
+
+    like = None
+    for path in paths:
+        episode = read_episode(path, like)
+        like = episode if like is None else like
+        yield episode

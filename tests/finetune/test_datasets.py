@@ -358,3 +358,18 @@ def test_a_dataset_in_a_storage_format_not_installed_is_refused_with_its_message
     with pytest.raises(DatasetError, match=r"'test/random-v0' at \S+ is stored in a format this installation cannot "
                                            r"read \(pyarrow is not installed. .*minari\[arrow\]"):
         open_dataset("test/random-v0")
+
+
+def test_collect_from_a_run_whose_replay_holds_another_tasks_episode_writes_nothing(tmp_path, tiny_config, capsys):
+    rundir = tmp_path / "run"
+    cfg = tiny_config(task=TASK, agent="scratch", action_repeat=1, time_limit=5, fast_render=True)
+    (rundir / "replay").mkdir(parents=True)
+    (rundir / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg)))
+    replay = Replay(rundir / "replay", capacity=1000, rng=np.random.default_rng(0))
+    for width in (4, 1):  # the run's own episode, then one of a 1-dimensional task copied in
+        replay.add({"obs": np.zeros((6, 3, 64, 64), np.uint8), "action": np.zeros((6, width), np.float32),
+                    "reward": np.zeros(6, np.float32)})
+    assert main(["collect", "--from-run", str(rundir), "--dataset-id", "test/mixed-v0", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"{rundir / 'replay' / '000001-5.npz'}: its actions have 1 dimensions, the run's 4" in err
+    assert "Traceback" not in err and "test/mixed-v0" not in list_datasets()  # the partial dataset is deleted

@@ -107,3 +107,20 @@ def test_a_damaged_episode_file_is_named_and_a_deleted_one_overwrites_nothing(tm
     assert resumed.load() == 2
     resumed.add(episode(4, 5))
     assert [path.name for path in sorted(tmp_path.glob("*.npz"))] == [first.name, third.name, "000003-5.npz"]
+
+
+def test_an_episode_of_another_task_in_the_replay_is_named_not_a_numpy_error(tmp_path):
+    replay = Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0))
+    for i in range(2):
+        replay.add(episode(i + 1, 5))
+    foreign = episode(3, 5)
+    foreign["action"] = np.zeros((6, 4), np.float32)  # a 4-dimensional task's episode, copied in from another run
+    np.savez_compressed(tmp_path / "000002-5.npz", **foreign)
+    with pytest.raises(ReplayError, match=f"000002-5.npz: its actions have 4 dimensions, the run's 2: an episode of "
+                                          f"another run or task\\? move it out of {tmp_path}"):
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(action_dim=2)
+    with pytest.raises(ReplayError, match="000002-5.npz: its actions have 4 dimensions, the run's 2"):  # without it,
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load()  # the oldest sets what the rest must be
+    np.savez_compressed(tmp_path / "000002-5.npz", **(foreign | {"obs": foreign["obs"][:, 0]}))  # frames lose a dim
+    with pytest.raises(ReplayError, match=r"000002-5.npz: it holds obs uint8 \[6, 64, 64\], action \[6, 4\]"):
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(action_dim=2)
