@@ -380,6 +380,9 @@ def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
     """
     if len(source_ids) < 2:
         raise DatasetError("merge needs at least two datasets")
+    if repeated := [dataset_id for dataset_id in dict.fromkeys(source_ids) if source_ids.count(dataset_id) > 1]:
+        raise DatasetError(f"{repeated[0]} is named {source_ids.count(repeated[0])} times: the merge would hold each of its "
+                           "episodes that often, over-weighting them in every batch; name each dataset once")
     datasets = [open_dataset(dataset_id) for dataset_id in source_ids]
     settings = [hauwm_metadata(dataset) for dataset in datasets]
     agreed = {}  # what the sources that record it agree on, kept even where a source made elsewhere records nothing

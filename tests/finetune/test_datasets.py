@@ -340,6 +340,15 @@ def test_a_merge_with_a_dataset_made_elsewhere_keeps_the_task_the_others_record(
         load_episodes("test/mixed-v0", task="metaworld_dial_turn")
 
 
+def test_a_merge_that_names_a_dataset_twice_is_refused_not_doubled(random_episodes, capsys):
+    write_dataset("test/random-v0", iter(random_episodes[:1]), {"task": TASK, "source": "random"})
+    write_dataset("test/other-v0", iter(random_episodes[1:2]), {"task": TASK, "source": "random"})
+    assert main(["merge", "test/random-v0", "test/other-v0", "test/random-v0", "--out", "test/merged-v0",
+                 "--no-progress"]) == 2
+    assert "test/random-v0 is named 2 times: the merge would hold each of its episodes that often" in capsys.readouterr().err
+    assert "test/merged-v0" not in list_datasets()
+
+
 def test_a_dict_observation_without_a_uint8_image_names_its_entries():
     floats = gymnasium.spaces.Dict({"pixels": gymnasium.spaces.Box(0.0, 1.0, (64, 64, 3), np.float32)})
     write_foreign("other/floatpixels-v0", floats, {"pixels": np.zeros((4, 64, 64, 3), np.float32)})
