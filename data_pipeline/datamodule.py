@@ -23,6 +23,8 @@ from lightning.pytorch.utilities import rank_zero_info
 from .loader import LoaderError, SequenceDataset, check_worker_priority, make_dataloader, shard_set
 from .shard_format import read_manifest
 
+MAX_TIMEOUT = 86_400.0  # --data.timeout: a day
+
 
 class SetEpoch(lightning.Callback):
     """Sets the train dataset's epoch at the start of each epoch, before Lightning creates the epoch's iterator
@@ -70,8 +72,9 @@ class ShardDataModule(lightning.LightningDataModule):
         if seq_len < 2:
             raise LoaderError(f"--data.seq_len must be at least 2 (a sequence must hold a gap k for the model to learn "
                               f"from), got {seq_len}")
-        if not timeout > 0:
-            raise LoaderError(f"--data.timeout (seconds a worker may take for a batch) must be positive, got {timeout}")
+        if not 0 < timeout <= MAX_TIMEOUT:  # the OS cannot wait for 1e300 s: an OverflowError at the first batch
+            raise LoaderError(f"--data.timeout (seconds a worker may take for a batch) must be positive and at most "
+                              f"{MAX_TIMEOUT:g} (a day), got {timeout}")
         super().__init__()
         self.save_hyperparameters()
         self.train_set: SequenceDataset | None = None
