@@ -86,22 +86,24 @@ def read_manifest(directory: str | Path) -> dict:
 def missing_entry(manifest: dict) -> str | None:
     """The first entry a manifest lacks (or holds as something else than a mapping or list), named by its path,
     e.g. `splits.train.shards[0].sha256`; None when it has them all."""
-    parts: list[tuple[str, object, tuple[str, ...]]] = [("settings", manifest["settings"], SETTINGS_KEYS),
-                                                        ("errors", manifest["errors"], ("total",))]
-    splits = manifest["splits"]
-    if not isinstance(splits, dict):
-        return "splits (a mapping of split names)"
-    for split, counts in splits.items():
-        parts.append((f"splits.{split}", counts, SPLIT_KEYS))
-        shards = counts.get("shards") if isinstance(counts, dict) else None
-        if "shards" in (counts if isinstance(counts, dict) else {}) and not isinstance(shards, list):
-            return f"splits.{split}.shards (a list of shards)"
-        parts += [(f"splits.{split}.shards[{i}]", shard, SHARD_KEYS) for i, shard in enumerate(shards or [])]
-    for where, part, keys in parts:
+    def lacking(where: str, part: object, keys: tuple[str, ...]) -> str | None:
         if not isinstance(part, dict):
             return f"{where} (a mapping)"
-        if missing := [key for key in keys if key not in part]:
-            return f"{where}.{missing[0]}"
+        return next((f"{where}.{key}" for key in keys if key not in part), None)
+
+    if problem := lacking("settings", manifest["settings"], SETTINGS_KEYS) or lacking("errors", manifest["errors"],
+                                                                                      ("total",)):
+        return problem
+    if not isinstance(manifest["splits"], dict):
+        return "splits (a mapping of split names)"
+    for split, counts in manifest["splits"].items():
+        if problem := lacking(f"splits.{split}", counts, SPLIT_KEYS):
+            return problem
+        if not isinstance(counts["shards"], list):
+            return f"splits.{split}.shards (a list of shards)"
+        for i, shard in enumerate(counts["shards"]):
+            if problem := lacking(f"splits.{split}.shards[{i}]", shard, SHARD_KEYS):
+                return problem
     return None
 
 
