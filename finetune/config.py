@@ -171,7 +171,8 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
     if path is not None:
         path = Path(path)
         if not path.is_file():
-            raise ConfigError(f"config file {path} not found ({WHERE_CONFIGS_ARE})")
+            what = "is a directory, not a YAML file" if path.is_dir() else "not found"
+            raise ConfigError(f"config file {path} {what} ({WHERE_CONFIGS_ARE})")
         try:
             values = yaml.load(path.read_text(), UniqueKeyLoader)
         except yaml.YAMLError as err:

@@ -15,6 +15,7 @@ tensor's name and shape against the architecture the config describes.
 from __future__ import annotations
 
 import json
+import os
 import pickle
 from pathlib import Path
 from typing import Any
@@ -61,7 +62,7 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
     # recognise their export by the file's sha256 (finetune/train.py), so the same model must give the same bytes
     # safetensors' save_file makes the file readable by its owner only; written as bytes it follows the umask, so an
     # export on shared storage is readable by whoever may read the directory
-    (out / WEIGHTS_FILE).write_bytes(save(tensors, metadata={"hauwm": f"{KIND}, schema_version {SCHEMA_VERSION}"}))
+    weights = save(tensors, metadata={"hauwm": f"{KIND}, schema_version {SCHEMA_VERSION}"})
     config = {
         "schema_version": SCHEMA_VERSION,
         "kind": KIND,
@@ -71,7 +72,13 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
         "normalisation": NORMALISATION,
         "provenance": provenance or {},
     }
-    (out / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
+    # both written beside their names first, then renamed one after the other: an export replaced with --overwrite
+    # is never half written (a kill or a full disk leaves the old files, whole)
+    files = {WEIGHTS_FILE: weights, CONFIG_FILE: (json.dumps(config, indent=2) + "\n").encode()}
+    for name, data in files.items():
+        (out / f".{name}.partial").write_bytes(data)
+    for name in files:
+        os.replace(out / f".{name}.partial", out / name)
     return out
 
 

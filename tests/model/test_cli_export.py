@@ -8,6 +8,7 @@ import logging
 import os
 import pickle
 import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -293,6 +294,29 @@ def test_an_export_is_not_replaced_without_overwrite(tiny_run, tiny_export, tmp_
         os.umask(umask)
     assert {path.name: path.stat().st_mode & 0o777 for path in out.iterdir()} == {
         "weights.safetensors": 0o644, "config.json": 0o644}
+
+
+def test_an_export_stopped_while_writing_leaves_the_old_one_whole(tiny_run, tiny_export, tmp_path, monkeypatch):
+    """A full disk (or a kill) while --overwrite writes the config: both old files stay as they were."""
+    from model.export import export_frozen
+
+    out = tmp_path / "export"
+    shutil.copytree(tiny_export, out)
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+    write_bytes = Path.write_bytes
+
+    def disk_full_at_the_config(path: Path, data: bytes) -> int:
+        if path.name == ".config.json.partial":
+            raise OSError(28, "No space left on device")
+        return write_bytes(path, data)
+
+    monkeypatch.setattr(Path, "write_bytes", disk_full_at_the_config)
+    model = load_frozen(tiny_export)
+    with torch.no_grad():
+        next(model.parameters()).add_(1.0)  # another model's weights
+    with pytest.raises(OSError, match="No space left"):
+        export_frozen(model, out)
+    assert {path.name: path.read_bytes() for path in out.iterdir() if not path.name.endswith(".partial")} == before
 
 
 def test_export_of_a_missing_or_damaged_checkpoint_is_refused(built_shards, tiny_run, tmp_path, capsys):
