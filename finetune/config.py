@@ -17,7 +17,7 @@ from pathlib import Path
 
 import yaml
 
-from model.config import ConfigError
+from model.config import ConfigError, not_yaml
 
 PARADIGMS = ("online", "offline", "imitation")
 PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
@@ -176,9 +176,7 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
         try:
             values = yaml.load(path.read_text(), UniqueKeyLoader)
         except yaml.YAMLError as err:
-            mark = getattr(err, "problem_mark", None)
-            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-            raise ConfigError(f"config file {path} is not valid YAML: {getattr(err, 'problem', err)}{where}") from None
+            raise not_yaml(path, err) from None
         if values is None:  # an empty file (or comments only), more likely a slip than a wish for every default
             raise ConfigError(f"config file {path} holds no settings: a config names at least its task ({WHERE_CONFIGS_ARE})")
         if not isinstance(values, dict):

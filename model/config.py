@@ -8,19 +8,31 @@ Every setting that defines the architecture (and so the shapes of the exported w
   torch.load(weights_only=True)); checkpoints written before it existed hold the same keys flat;
 - the export writes it under "world_model" in config.json (schema_version 2; version 1 held the keys flat),
   and fine-tuning rebuilds the frozen model from it.
+
+`ConfigError` is every stage's error for a bad setting (`not_yaml`: for a config file YAML cannot read).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 from model.temporal import MODES
 
 
 class ConfigError(ValueError):
     """A setting or combination of settings that cannot train; the message names the flag and the fix."""
+
+
+def not_yaml(path: Path, err: yaml.YAMLError) -> ConfigError:
+    """A config file that YAML cannot read, named with the line and column where it went wrong."""
+    mark = getattr(err, "problem_mark", None)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+    return ConfigError(f"config file {path} is not valid YAML: {getattr(err, 'problem', None) or err}{where}")
 
 
 # a field's annotation → the Python types it accepts (an int where a float is asked is fine) and its name in errors

@@ -30,7 +30,7 @@ from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from data_pipeline.datamodule import ShardDataModule
 from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
 from model.cli import refuse_other_frame_size
-from model.config import ConfigError, WorldModelConfig
+from model.config import ConfigError, WorldModelConfig, not_yaml
 from model.export import checkpoint_world_model, read_checkpoint
 from model.interrupt import FitInterrupted, ResumeNotice
 from model.module import PretrainModule, refuse_other_size
@@ -71,9 +71,10 @@ def last_checkpoint(trainer_config) -> Path:
 # -- checks of the arguments, the resume and the trainer, before anything is built ----------------------
 
 
-def refuse_flat_sizes(args: list[str]) -> None:
-    """The sizes moved under model.world_model: name an old-style flag or config key and its new place
-    (the parser alone would only say that `model` does not accept it)."""
+def refuse_bad_configs(args: list[str]) -> None:
+    """A --config file that is not YAML, named with its line (the parser says "<unicode string>", whichever file it
+    was); the sizes moved under model.world_model: an old-style flag or config key named with its new place (the
+    parser alone would only say that `model` does not accept it)."""
     sizes = {field.name for field in dataclasses.fields(WorldModelConfig)}
     for index, arg in enumerate(args):
         flag, _, value = arg.partition("=")
@@ -84,8 +85,8 @@ def refuse_flat_sizes(args: list[str]) -> None:
         path = Path(value or (args[index + 1] if index + 1 < len(args) else ""))
         try:
             config = yaml.safe_load(path.read_text()) if path.is_file() else None
-        except yaml.YAMLError:
-            continue  # the parser reports it
+        except yaml.YAMLError as err:  # the parser would not say which of the --config files
+            raise not_yaml(path, err) from None
         model = config.get("model") if isinstance(config, dict) else None
         flat = sorted(sizes & set(model)) if isinstance(model, dict) else []
         if flat:
@@ -262,7 +263,7 @@ def not_an_advert(record: logging.LogRecord) -> bool:
 def lightning_cli(args: list[str]) -> PretrainCLI:
     """Run a LightningCLI subcommand (fit, validate) over PretrainModule and the shard DataModule. Ctrl-C or SIGTERM
     during a fit raises FitInterrupted, once ResumeNotice has said where to resume from."""
-    refuse_flat_sizes(args)
+    refuse_bad_configs(args)
     # `hauwm` passes its own argv on purpose; Lightning would warn that sys.argv differs
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
     # checkpoints after the optimizer step are what resume needs; Lightning warns about it under manual optimisation

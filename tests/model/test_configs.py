@@ -111,6 +111,14 @@ def test_sizes_in_the_old_flat_place_are_refused_with_their_new_place(capsys, tm
     assert f"{old}: model.deter (like every size) now belongs under model.world_model" in err and "Traceback" not in err
 
 
+def test_a_config_file_that_is_not_yaml_is_named_among_several(capsys, tmp_path):
+    broken = tmp_path / "extra.yaml"
+    broken.write_text("trainer:\n  max_steps: [1\n")
+    assert main(["fit", "--config", str(CONFIGS / "tiny.yaml"), "--config", str(broken), "--data.shards",
+                 str(tmp_path)]) == 2
+    assert f"error: config file {broken} is not valid YAML: expected ',' or ']'" in capsys.readouterr().err
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="the refusals of a machine without a GPU")
 def test_the_gpu_config_on_a_cpu_machine_says_which_flags_make_it_run(built_shards, capsys):
     gpu = ["fit", "--config", str(CONFIGS / "ssv2.yaml"), "--data.shards", str(built_shards)]
