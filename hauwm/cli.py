@@ -6,8 +6,8 @@
     hauwm datasets ...   finetune.datasets.cli (Minari datasets for offline RL: collect, merge, inspect, list)
 
 A stage's own errors are its to report; what reaches this dispatcher is reported here in one line: Ctrl-C while
-a stage starts up, a reader of stdout that has gone (`| head`), a path that cannot be made, read or written, and a
-full disk or quota.
+a stage starts up, a reader of stdout that has gone (`| head`), a path that cannot be made, read or written, a
+full disk or quota, and memory that ran out (on the GPU or in the host).
 """
 
 from __future__ import annotations
@@ -33,6 +33,12 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+# what lowers a stage's memory, for an allocation that failed (a batch that does not fit on the GPU, most often)
+SMALLER = {
+    "pretrain": "lower --data.batch_size or --data.seq_len (fit, validate; a fit goes on from its last checkpoint with "
+                "--ckpt_path last) or --batch-size (analyze)",
+    "finetune": "lower batch_size or seq_len (--set batch_size=16), or num_envs; a run goes on from its last checkpoint",
+}
 FULL = (errno.ENOSPC, errno.EDQUOT)  # a full disk, or the user's disk quota reached (common on clusters)
 
 
@@ -46,6 +52,12 @@ def path_problem(err: OSError) -> str:
     if err.errno in (errno.EEXIST, errno.ENOTDIR):  # mkdir of an output directory where a file is
         return f"{path} is a file, or lies under one, where a directory is needed: pass another path"
     return f"{path}: {err.strerror}: check the path and its permissions"
+
+
+def out_of_memory(err: BaseException) -> bool:
+    """torch's OutOfMemoryError (CUDA), a host allocation torch or numpy could not make (without importing either)."""
+    return isinstance(err, MemoryError) or type(err).__name__ == "OutOfMemoryError" or (
+        isinstance(err, RuntimeError) and "can't allocate memory" in str(err))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -72,6 +84,13 @@ def main(argv: list[str] | None = None) -> int:
         if err.filename is None and err.errno not in FULL:  # not about a path (a socket, a library's own failure)
             raise
         print(f"hauwm {argv[0]}: error: {path_problem(err)}", file=sys.stderr)
+        return 2
+    except (MemoryError, RuntimeError) as err:
+        if not out_of_memory(err):
+            raise
+        what = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        hint = SMALLER.get(argv[0], "lower the sizes this command was given")
+        print(f"hauwm {argv[0]}: error: out of memory ({what}): {hint}", file=sys.stderr)
         return 2
 
 

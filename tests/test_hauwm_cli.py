@@ -65,3 +65,28 @@ def test_a_full_disk_is_named_and_other_os_errors_keep_their_traceback(monkeypat
     monkeypatch.setattr(importlib, "import_module", lambda name: stage(ConnectionResetError("peer")))
     with pytest.raises(ConnectionResetError):  # not about a path: a bug or a network failure, shown in full
         main(["shards", "build"])
+
+
+@pytest.mark.parametrize("error", [RuntimeError("[enforce fail at alloc_cpu.cpp:121] data. DefaultCPUAllocator: can't "
+                                                "allocate memory: you tried to allocate 58982400000 bytes."),
+                                   MemoryError("Unable to allocate 55.0 GiB for an array")],
+                         ids=["torch", "numpy"])
+def test_memory_that_ran_out_is_one_line_naming_what_to_lower(monkeypatch, capsys, error):
+    stage = types.ModuleType("model.cli")
+
+    def out_of_memory(argv):
+        raise error
+
+    stage.main = out_of_memory
+    monkeypatch.setitem(sys.modules, "model.cli", stage)
+    assert main(["pretrain", "analyze", "--batch-size", "100000"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"hauwm pretrain: error: out of memory ({str(error).splitlines()[0]}): lower --data.batch_size")
+    assert "--batch-size (analyze)" in err and "Traceback" not in err
+
+    def another_runtime_error(argv):
+        raise RuntimeError("shape mismatch")
+
+    stage.main = another_runtime_error  # keeps its traceback: not about memory
+    with pytest.raises(RuntimeError, match="shape mismatch"):
+        main(["pretrain", "fit"])
