@@ -121,7 +121,7 @@ def references(args: argparse.Namespace, episodes: int, seed: int) -> dict[str, 
     from finetune.datasets.sources import ExpertPolicy, RandomPolicy, load_agent_policy
     from finetune.envs import make_env
     from finetune.rollout import play_episode
-    from finetune.train import BEST
+    from finetune.run_dir import BEST
 
     result = {}
     for name in ("random", "expert"):
@@ -194,7 +194,8 @@ def final_report(args: argparse.Namespace, names: list[str]) -> None:
     """Each run's last and best checkpoints and both references, --final-episodes episodes each from one env seed."""
     from finetune.config import step_unit
     from finetune.envs import make_env
-    from finetune.train import BEST, CHECKPOINT, evaluate, load_trained, resolve_device
+    from finetune.run_dir import BEST, CHECKPOINT, load_trained
+    from finetune.train import evaluate, resolve_device
 
     episodes, seed = args.final_episodes, args.seed + 20_000
     refs = references(args, episodes, seed)

@@ -35,7 +35,8 @@ from finetune.config import load_config  # noqa: E402
 from finetune.envs import make_env  # noqa: E402
 from finetune.pretrained import PretrainedError  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
-from finetune.train import FinetuneError, build_agent  # noqa: E402
+from finetune.config import FinetuneError  # noqa: E402
+from finetune.train import build_agent  # noqa: E402
 
 
 def drift_table(features: torch.Tensor, deter: int) -> list[tuple[float, float]]:

@@ -30,7 +30,8 @@ from bench.machine import describe_machine  # noqa: E402
 from finetune.config import load_config  # noqa: E402
 from finetune.imitation import ImitationAgent, RecordedActions  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
-from finetune.train import load_dataset, load_trained  # noqa: E402
+from finetune.run_dir import load_trained  # noqa: E402
+from finetune.train import load_dataset  # noqa: E402
 from finetune.world_model import Latent  # noqa: E402
 
 

@@ -40,7 +40,9 @@ from bench.machine import describe_machine  # noqa: E402
 from finetune.offline import OfflineAgent  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
 from finetune.pretrained import PretrainedError  # noqa: E402
-from finetune.train import BEST, CHECKPOINT, FinetuneError, load_dataset, load_trained, run_config, task_env  # noqa: E402
+from finetune.config import FinetuneError  # noqa: E402
+from finetune.run_dir import BEST, CHECKPOINT, load_trained, run_config  # noqa: E402
+from finetune.train import load_dataset, task_env  # noqa: E402
 from finetune.world_model import Latent  # noqa: E402
 
 MODEL_METRICS = ("model_loss", "recon_nll", "reward_nll", "kl")

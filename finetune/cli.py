@@ -81,8 +81,9 @@ def evaluate_run(argv: list[str]) -> int:
     """`hauwm finetune evaluate`: one line with the run's agent's returns over --episodes fresh episodes."""
     from finetune.agent import DivergedError
     from finetune.pretrained import PretrainedError
-    from finetune.train import (BEST, CHECKPOINT, HELD_OUT_SEED, FinetuneError, evaluate, load_trained, resolve_device,
-                                run_config, task_env)
+    from finetune.config import FinetuneError
+    from finetune.run_dir import BEST, CHECKPOINT, load_trained, run_config
+    from finetune.train import HELD_OUT_SEED, evaluate, resolve_device, task_env
 
     args = evaluate_parser().parse_args(argv)
     try:
@@ -113,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     from finetune.config import load_config, parse_override
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
-    from finetune.train import CHECKPOINT, FinetuneError
+    from finetune.config import FinetuneError
+    from finetune.run_dir import CHECKPOINT
     from model.config import ConfigError
 
     argv = sys.argv[1:] if argv is None else argv
@@ -168,7 +170,7 @@ def best_kept(logdir: Path, unit: str) -> str:
     """Which evaluation the run's best.pt is of, e.g. 'best evaluation: return 1.3 at update 750, its agent in …'."""
     import torch
 
-    from finetune.train import BEST, CHECKPOINT
+    from finetune.run_dir import BEST, CHECKPOINT
     from model.export import torch_load_failure
 
     if not (logdir / BEST).is_file():

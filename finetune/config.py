@@ -3,6 +3,8 @@
 A config file sets any subset of the fields below; `configs/finetune/<suite>_<task>.yaml` set the task,
 its budget and its evaluation cadence. Counts named `*_steps`/`steps`/`prefill`/`*_every` are
 environment steps (frames: one agent step is `action_repeat` of them), as in the paper's budgets.
+A setting's own value that is wrong is a ConfigError; `FinetuneError` is every other problem of a
+fine-tuning run the user can fix (a flag, a run directory, a dataset), raised throughout finetune/.
 """
 
 from __future__ import annotations
@@ -48,6 +50,10 @@ RANGES: tuple[tuple[tuple[str, ...], str, Callable[[float], bool]], ...] = (
     (("target_fraction",), "in (0, 1]", lambda v: 0 < v <= 1),
     (("demo_fraction",), "strictly between 0 and 1", lambda v: 0 < v < 1),
 )
+
+
+class FinetuneError(RuntimeError):
+    """A problem the user can fix (bad flags, a run directory from another task); printed without a traceback."""
 
 
 @dataclass

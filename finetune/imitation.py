@@ -37,10 +37,11 @@ import numpy as np
 import torch
 
 from finetune.agent import Agent
-from finetune.config import FinetuneConfig
+from finetune.config import FinetuneConfig, FinetuneError
 from finetune.discriminator import Discriminator
 from finetune.replay import Replay
-from finetune.train import FinetuneError, LoopHooks, exclusive, load_dataset, run
+from finetune.run_dir import exclusive
+from finetune.train import LoopHooks, load_dataset, run
 from finetune.world_model import Latent, RewardFn, Rollout
 
 

@@ -22,12 +22,13 @@ import torch
 from tqdm import tqdm
 
 from finetune.agent import Agent
-from finetune.config import FinetuneConfig
+from finetune.config import FinetuneConfig, FinetuneError
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
-from finetune.train import (CHECKPOINT, FinetuneError, LogWindow, close_window, exclusive, load_dataset, next_multiple,
-                            save_checkpoint, scheduled_evaluation, start_run, task_env)
+from finetune.run_dir import CHECKPOINT, exclusive, save_checkpoint
+from finetune.train import (LogWindow, close_window, load_dataset, next_multiple, scheduled_evaluation, start_run,
+                            task_env)
 from finetune.world_model import Latent
 
 

@@ -6,48 +6,35 @@ runs every `train_every` env steps. With several envs (worker processes, finetun
 envs act as one batch and the updates due run while the workers step; each env fills its own episodes.
 Every `eval_every` env steps the policy's mode plays `eval_episodes` episodes on a separately seeded
 environment; returns are logged raw and normalised with the paper's Table 4 references where the task
-has them. `checkpoint.pt` in the run directory holds everything but the frozen export and the replay
-(the replay's episodes are on disk in `replay/`); starting again with the same --logdir resumes.
-`best.pt` holds the agent of the evaluation with the highest mean return so far (`keep_best`).
+has them. Every `checkpoint_every` env steps the run directory's checkpoint.pt is written, and each
+evaluation with the highest mean return so far is kept in best.pt; starting again with the same --logdir
+resumes (what a checkpoint holds and the rules of a resume: finetune/run_dir.py).
 """
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import dataclasses
-import fcntl
-import hashlib
-import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 from tqdm import tqdm
 
 from finetune.agent import Agent, resolve_compile
-from finetune.config import FinetuneConfig, load_config, step_unit
+from finetune.config import FinetuneConfig, FinetuneError, step_unit
 from finetune.logger import Logger
 from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
-from model.config import ConfigError
-from model.export import WEIGHTS_FILE, torch_load_failure
+from finetune.run_dir import CHECKPOINT, exclusive, export_fingerprint, keep_best, resume, save_checkpoint
 
-CHECKPOINT = "checkpoint.pt"
-BEST = "best.pt"  # the agent at its best evaluation so far (keep_best)
-LOCK = ".lock"
 ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this (env 0: the seed a single env gets)
 HELD_OUT_SEED = 1_000_000_000  # `hauwm finetune evaluate` plays from the run's seed + this: an env seed the run's
 #                                fresh envs (seed + i · ENV_SEED_STRIDE) and evaluations (seed + 10,000 + step) never
 #                                reach (its reseeded episodes, `episode_seed`, only by a 1-in-2^32 chance)
-
-
-class FinetuneError(RuntimeError):
-    """A problem the user can fix (bad flags, a run directory from another task); printed without a traceback."""
 
 
 def next_multiple(step: int, every: int) -> int:
@@ -119,180 +106,6 @@ def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, f
     return episodes
 
 
-def export_fingerprint(pretrained: str | Path | None) -> str:
-    """sha256 of the export's weights ('' for the scratch baseline): a resume must use the same export."""
-    if pretrained is None:
-        return ""
-    with open(Path(pretrained) / WEIGHTS_FILE, "rb") as weights:
-        return hashlib.file_digest(weights, "sha256").hexdigest()
-
-
-def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: str,
-                    rng: np.random.Generator | None = None) -> None:
-    """Write the agent's trainable weights, its optimisers, torch's random state(s), `counters`, cfg and the export's
-    fingerprint to `path` (a .tmp file, then renamed: an interrupted write keeps the last checkpoint). `rng`: the
-    replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
-    state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
-             "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state(),
-             "export_sha256": fingerprint}
-    if agent.device.type == "cuda":  # the world model's noise and the actor's samples are drawn there
-        state["cuda_rng"] = torch.cuda.get_rng_state(agent.device)
-    if rng is not None:
-        state["replay_rng"] = rng.bit_generator.state
-    tmp = path.with_suffix(".tmp")
-    try:
-        torch.save(state, tmp)
-    except (OSError, RuntimeError) as err:  # torch's zip writer reports a full disk as a RuntimeError
-        tmp.unlink(missing_ok=True)
-        raise FinetuneError(f"{path} could not be written ({str(err).splitlines()[0]}; a full disk or quota?); what "
-                            "was written before is kept: free some space and run the same command again (it goes on "
-                            "from the last checkpoint)") from None
-    os.replace(tmp, path)
-
-
-def settings_before_they_existed(paradigm: str) -> dict[str, object]:
-    """What a run written before these settings existed had: its checkpoint and config.yaml lack them."""
-    before: dict[str, object] = {"paradigm": "online", "model_heads": 1, "dataset": None, "demos": None}
-    if paradigm == "imitation":
-        before["expert_latents"] = "posterior"  # VMAIL's expert pairs, the only kind before the setting
-    return before
-
-
-def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str,
-               remedy: str = "restore it, or train in another --logdir") -> dict:
-    """What save_checkpoint wrote to `path` (checkpoint.pt or best.pt), checked to be of this run: the same export
-    and the settings that shape the agent; a FinetuneError naming the file (and `remedy` if it cannot be read).
-    Read onto the CPU whatever the agent's device: loading the weights and optimizer states copies them to it,
-    and torch.set_rng_state takes a CPU tensor only."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)  # best.pt at start: counters only
-    except Exception as err:
-        raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): {remedy}") from None
-    shaping = ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm",
-               *settings_before_they_existed(cfg.paradigm))
-    if differing := differing_settings(cfg, state["config"], shaping):
-        key, written = differing[0]
-        raise FinetuneError(f"{path} was written by a run with {key}={written!r}, this run has "
-                            f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
-    if state["export_sha256"] != fingerprint:
-        raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
-                            "pass the export it was trained on (or, to train anew, another --logdir)")
-    return state
-
-
-# what a resume may change: the budget, the evaluation, logging and checkpoint cadence, and how the run computes
-# (none of these changes what is learned, beyond rounding); any other setting stays as the run began
-RESUMABLE = ("steps", "logdir", "eval_every", "eval_episodes", "log_every", "checkpoint_every", "device", "threads",
-             "compile", "conv_bf16", "num_envs", "pin_envs")
-
-
-def differing_settings(cfg: FinetuneConfig, written: dict[str, object],
-                       keys: Iterable[str]) -> list[tuple[str, object]]:
-    """(key, value written) for each of `keys` whose value in `written` (a checkpoint's settings) is not cfg's; a
-    setting the checkpoint predates counts with the value runs had before it (settings_before_they_existed), or
-    None."""
-    values = {**settings_before_they_existed(cfg.paradigm), **written}
-    return [(key, values.get(key)) for key in keys if hasattr(cfg, key) and values.get(key) != getattr(cfg, key)]
-
-
-def changed_settings(cfg: FinetuneConfig, written: dict[str, object]) -> list[str]:
-    """`key=written (asked: cfg's)` for each setting outside RESUMABLE whose value in `written` is not cfg's."""
-    return [f"{key}={value!r} (asked: {getattr(cfg, key)!r})"
-            for key, value in differing_settings(cfg, written, [key for key in written if key not in RESUMABLE])]
-
-
-def refuse_changed_settings(cfg: FinetuneConfig, written: dict[str, object], path: Path) -> None:
-    """A FinetuneError if `cfg` resumes the checkpoint at `path` (trained with the settings `written`) with a setting
-    outside RESUMABLE changed: part of the run would have learned with one value and part with another, and
-    config.yaml keeps only the last."""
-    if changed := changed_settings(cfg, written):
-        raise FinetuneError(f"{path} was trained with {', '.join(changed[:3])}: a resume goes on with the settings "
-                            f"the run began with (only {', '.join(RESUMABLE)} may change); drop the change, or train "
-                            "in another --logdir")
-
-
-def refuse_other_run(cfg: FinetuneConfig) -> None:
-    """A FinetuneError if cfg.logdir holds the config.yaml of a run that stopped before its first checkpoint with
-    other settings than cfg's (outside RESUMABLE): starting again there would train on that run's replay episodes
-    and overwrite its config.yaml."""
-    path = Path(cfg.logdir) / "config.yaml"
-    try:
-        written = yaml.safe_load(path.read_text()) if path.is_file() else None
-    except (OSError, yaml.YAMLError):
-        written = None  # unreadable: nothing to compare with; it is written again
-    if isinstance(written, dict) and (changed := changed_settings(cfg, written)):
-        raise FinetuneError(f"{cfg.logdir} holds a run with {', '.join(changed[:3])} that stopped before its first "
-                            f"checkpoint; its replay episodes would train this one: train in another --logdir, or "
-                            f"delete {cfg.logdir} first")
-
-
-def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
-                    rng: np.random.Generator | None = None, resuming: bool = False) -> dict[str, float]:
-    """Restore `agent` (weights, optimizers), torch's and `rng`'s states from `path`; -> its counters. `resuming`:
-    `cfg` goes on training it, so only RESUMABLE settings may differ from those it was trained with."""
-    state = read_state(path, cfg, fingerprint)
-    if resuming:
-        refuse_changed_settings(cfg, state["config"], path)
-    missing, unexpected = agent.load_state_dict(state["agent"], strict=False)
-    missing = [k for k in missing if not k.startswith("world_model.frozen.")]
-    if missing or unexpected:
-        raise FinetuneError(f"{path} does not fit this agent (missing {missing[:3]}, unexpected {unexpected[:3]})")
-    agent.load_optimizer_state_dicts(state["optimizers"])
-    torch.set_rng_state(state["torch_rng"])
-    if "cuda_rng" in state and agent.device.type == "cuda":
-        torch.cuda.set_rng_state(state["cuda_rng"], agent.device)
-    if rng is not None and "replay_rng" in state:
-        rng.bit_generator.state = state["replay_rng"]
-    return dict(state["counters"])
-
-
-def run_config(logdir: str | Path, overrides: dict[str, object] | None = None) -> FinetuneConfig:
-    """The FinetuneConfig a `hauwm finetune` run wrote to LOGDIR/config.yaml, with `overrides` and, for the settings
-    the run predates, the values it ran with (settings_before_they_existed); a FinetuneError if there is none or
-    it cannot be read."""
-    path = Path(logdir) / "config.yaml"
-    if not path.is_file():
-        raise FinetuneError(f"{logdir} is not a `hauwm finetune` run directory (no config.yaml)")
-    try:
-        written = yaml.safe_load(path.read_text())
-    except yaml.YAMLError:
-        written = None  # load_config below says what is wrong with the file
-    written = written if isinstance(written, dict) else {}
-    before = settings_before_they_existed(str(written.get("paradigm", "online")))
-    older = {key: value for key, value in before.items() if key not in written}  # an older run's values
-    try:
-        return load_config(path, {**older, **(overrides or {})})
-    except ConfigError as error:
-        raise FinetuneError(f"{path}: {error}") from None
-
-
-def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
-                 device: torch.device = torch.device("cpu"), checkpoint: str = CHECKPOINT
-                 ) -> tuple[FinetuneConfig, Agent, dict[str, float]]:
-    """A run's agent (online, offline or imitation, as its config says) as its `checkpoint` (the last one, or
-    BEST) left it, in eval mode: (the run's config, the agent, its counters then); to play it (datasets) and
-    for benches and diagnoses."""
-    from finetune.imitation import ImitationAgent
-    from finetune.offline import OfflineAgent
-
-    logdir = Path(logdir)
-    for name in ("config.yaml", checkpoint):
-        if not (logdir / name).is_file():
-            why = ("no evaluation has been kept (a run writes best.pt at its evaluations; older versions did not)"
-                   if name == BEST else "not a run directory, or a run that has not checkpointed yet")
-            raise FinetuneError(f"{logdir} holds no {name}: {why}")
-    cfg = run_config(logdir, {"device": str(device)})
-    if cfg.agent == "hauwm" and pretrained is None:
-        raise FinetuneError(f"{logdir} trained agent 'hauwm' on a frozen export: pass that export with --pretrained "
-                            "DIR (its sha256 is checked)")
-    agent_class = {"online": Agent, "offline": OfflineAgent, "imitation": ImitationAgent}[cfg.paradigm]
-    hauwm = pretrained if cfg.agent == "hauwm" else None
-    agent = build_agent(cfg, action_dim, hauwm, device, agent_class)
-    counters = load_checkpoint(logdir / checkpoint, agent, cfg, export_fingerprint(hauwm))
-    agent.eval()
-    return cfg, agent, counters
-
-
 def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None,
              progress: bool = False) -> dict[str, float]:
     """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate.
@@ -335,16 +148,6 @@ def scheduled_evaluation(agent: Agent, eval_env, cfg: FinetuneConfig, seed: int 
     return result
 
 
-def keep_best(logdir: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: str,
-              result: dict[str, float], step: int) -> None:
-    """Save the agent to logdir/BEST when evaluation `result` (at `step`) has the run's highest mean return so
-    far (the first of equals); `counters` keep that return and step, so a resumed run goes on comparing."""
-    if result["return"] <= counters.get("best_return", -np.inf):
-        return
-    counters["best_return"], counters["best_at"] = result["return"], step
-    save_checkpoint(logdir / BEST, agent, cfg, counters, fingerprint)
-
-
 @dataclasses.dataclass
 class LogWindow:
     """The updates since the last `train` log row: the update count and the time the window began at (for updates/s),
@@ -368,34 +171,6 @@ def close_window(window: LogWindow, updates: int) -> dict[str, float]:
     metrics["updates_per_s"] = (updates - window.updates) / (now - window.began)
     window.updates, window.began, window.metrics = updates, now, []
     return metrics
-
-
-@contextlib.contextmanager
-def exclusive(logdir: Path) -> Iterator[None]:
-    """Hold an exclusive lock on `logdir` (released when the run ends, also if it is killed): two runs
-    writing one run directory would interleave their replay files and overwrite each other's checkpoint. A run that
-    wrote nothing but its lock (one refused at its start) leaves no trace: the lock and the directories it made go."""
-    made = [directory for directory in (logdir, *logdir.parents) if not directory.exists()]  # deepest first
-    lock_made = not (logdir / LOCK).exists()
-    logdir.mkdir(parents=True, exist_ok=True)
-    with open(logdir / LOCK, "a+") as lock:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            lock.seek(0)
-            raise FinetuneError(f"{logdir} is in use by another run (pid {lock.read().strip() or '?'}): wait for it "
-                                "to finish or pass another --logdir") from None
-        lock.truncate(0)
-        lock.write(str(os.getpid()))
-        lock.flush()
-        try:
-            yield
-        finally:
-            if lock_made and [path.name for path in logdir.iterdir()] == [LOCK]:
-                (logdir / LOCK).unlink()
-                for directory in made:
-                    with contextlib.suppress(OSError):  # another process has written there meanwhile: it stays
-                        directory.rmdir()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -475,30 +250,16 @@ def task_env(cfg: FinetuneConfig, seed: int):
 def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: type[Agent], action_dim: int,
               counters: dict[str, float], rng: np.random.Generator) -> tuple[Agent, str, dict[str, float]]:
     """The start every paradigm shares: torch's threads and seed, the agent, and the run directory's checkpoint
-    if there is one (it restores the agent, `rng` and the counters; a fresh run keeps `counters`), the best return
-    best.pt holds if it is higher than the counters', and config.yaml written. -> (agent, the export's fingerprint,
-    counters)."""
+    if there is one (`resume`: it restores the agent, `rng` and the counters; a fresh run keeps `counters`), the best
+    return best.pt holds if it is higher than the counters', and config.yaml written. -> (agent, the export's
+    fingerprint, counters)."""
     device = resolve_device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     agent = build_agent(cfg, action_dim, pretrained, device, agent_class)
     fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
-    checkpoint = Path(cfg.logdir) / CHECKPOINT
-    if checkpoint.exists():
-        counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng, resuming=True)
-        unit, key = step_unit(cfg.paradigm)
-        print(f"resuming {checkpoint} at {unit} {int(counters[key])}", file=sys.stderr)
-    else:
-        refuse_other_run(cfg)
-    best = Path(cfg.logdir) / BEST
-    if best.exists():  # a run stopped between keeping an evaluation and its next checkpoint: its best.pt is better
-        #                than the checkpoint's counters know, and a worse evaluation must not replace it on resume
-        kept = read_state(best, cfg, fingerprint, remedy="restore it, or move it away to go on "
-                          "without it (the run then keeps its next best evaluation)")["counters"]
-        if kept.get("best_return", -np.inf) > counters.get("best_return", -np.inf):
-            counters.update(best_return=kept["best_return"], best_at=kept["best_at"])
-    (Path(cfg.logdir) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    counters = resume(cfg, agent, fingerprint, counters, rng)
     return agent, fingerprint, counters
 
 

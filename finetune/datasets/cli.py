@@ -159,7 +159,7 @@ def collect(args: argparse.Namespace) -> None:
         elif args.policy == "random":
             policy = RandomPolicy(env.action_space)
         else:
-            from finetune.train import BEST, CHECKPOINT
+            from finetune.run_dir import BEST, CHECKPOINT
 
             checkpoint = BEST if args.best else CHECKPOINT
             policy = load_agent_policy(args.checkpoint, args.pretrained, args.device, args.sample,
@@ -244,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     from finetune.datasets.minari_io import DatasetError, KeptOnInterrupt
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
-    from finetune.train import FinetuneError
+    from finetune.config import FinetuneError
     from model.config import ConfigError
 
     args = parser().parse_args(sys.argv[1:] if argv is None else argv)

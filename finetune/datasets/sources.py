@@ -72,7 +72,9 @@ def load_agent_policy(rundir: str | Path, pretrained: str | Path | None, device:
                       action_dim: int, checkpoint: str | None = None) -> AgentPolicy:
     """The agent of a `hauwm finetune` run (RUNDIR/config.yaml + RUNDIR/`checkpoint`: its last checkpoint by
     default, or best.pt) as a policy."""
-    from finetune.train import CHECKPOINT, FinetuneError, load_trained, resolve_device
+    from finetune.config import FinetuneError
+    from finetune.run_dir import CHECKPOINT, load_trained
+    from finetune.train import resolve_device
 
     try:
         _, agent, _ = load_trained(Path(rundir), pretrained, action_dim, resolve_device(device), checkpoint or CHECKPOINT)
@@ -82,9 +84,9 @@ def load_agent_policy(rundir: str | Path, pretrained: str | Path | None, device:
 
 
 def run_config(rundir: str | Path):
-    """The FinetuneConfig a `hauwm finetune` run wrote to RUNDIR/config.yaml (finetune.train.run_config)."""
-    from finetune.train import FinetuneError
-    from finetune.train import run_config as read_run_config
+    """The FinetuneConfig a `hauwm finetune` run wrote to RUNDIR/config.yaml (finetune.run_dir.run_config)."""
+    from finetune.config import FinetuneError
+    from finetune.run_dir import run_config as read_run_config
 
     try:
         return read_run_config(rundir)

@@ -28,7 +28,8 @@ from finetune.datasets.sources import RandomPolicy
 from finetune.envs import make_env
 from finetune.replay import KEYS, Replay
 from finetune.rollout import play_episode
-from finetune.train import BEST, CHECKPOINT, build_agent, save_checkpoint
+from finetune.run_dir import BEST, CHECKPOINT, save_checkpoint
+from finetune.train import build_agent
 
 TASK = "metaworld_drawer_close"
 

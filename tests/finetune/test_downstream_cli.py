@@ -6,6 +6,7 @@ import pytest
 
 import finetune.imitation
 import finetune.offline
+import finetune.run_dir
 import finetune.train
 from finetune.cli import main
 
@@ -64,7 +65,7 @@ def test_an_interrupted_run_says_which_checkpoint_is_kept(monkeypatch, tmp_path,
     args = ["--config", "configs/finetune/demo.yaml", "--logdir", str(tmp_path)]
     assert main(args) == 130
     assert "interrupted; no checkpoint was written yet: the same command starts it again" in capsys.readouterr().err
-    (tmp_path / finetune.train.CHECKPOINT).write_bytes(b"")
+    (tmp_path / finetune.run_dir.CHECKPOINT).write_bytes(b"")
     assert main(args) == 130
     assert f"its last checkpoint, {tmp_path / 'checkpoint.pt'} (written " in capsys.readouterr().err
 

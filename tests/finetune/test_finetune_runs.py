@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from finetune.cli import best_kept, main
-from finetune.config import load_config
+from finetune.config import FinetuneError, load_config
 from finetune.agent import Agent
 from finetune.envs.base import PixelEnv
-from finetune.train import (BEST, CHECKPOINT, FinetuneError, build_agent, evaluate, exclusive, export_fingerprint,
-                            load_checkpoint, resolve_device, save_checkpoint, train)
+from finetune.run_dir import BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, save_checkpoint
+from finetune.train import build_agent, evaluate, resolve_device, train
 from model.export import export_frozen
 from model.world_model import WorldModel
 

@@ -9,11 +9,13 @@ import pytest
 import torch
 
 from model.config import ConfigError
+from finetune.config import FinetuneError
 from finetune.discriminator import Discriminator
 from finetune.imitation import ImitationAgent, MixedReplay, demos_per_batch, train_imitation
 from finetune.envs import make_env
 from finetune.replay import Replay
-from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, FinetuneError, build_agent, episode_seed
+from finetune.run_dir import CHECKPOINT
+from finetune.train import ENV_SEED_STRIDE, build_agent, episode_seed
 from finetune.world_model import Latent
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 

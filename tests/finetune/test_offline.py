@@ -11,10 +11,11 @@ import pytest
 import torch
 
 from model.config import ConfigError
+from finetune.config import FinetuneError
 from finetune.offline import OfflineAgent, train_offline
 from finetune.penalty import PenalisedReward, uncertainty
 from model.losses import disagreement
-from finetune.train import BEST, CHECKPOINT, FinetuneError, load_trained
+from finetune.run_dir import BEST, CHECKPOINT, load_trained
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
 KINDS = ("loglik_std", "max_std", "mean_disagreement")

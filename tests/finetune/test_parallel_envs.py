@@ -18,7 +18,8 @@ import torch
 from finetune.config import load_config
 from finetune.envs import make_env, opengl
 from finetune.envs.vector import EnvWorkerError, closing_envs, forkserver_preload, make_vector_env, worker_cpus
-from finetune.train import CHECKPOINT, ENV_SEED_STRIDE, train
+from finetune.run_dir import CHECKPOINT
+from finetune.train import ENV_SEED_STRIDE, train
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
 # `configs/finetune/demo.yaml` with the tests' export (conftest.py), device cpu, 1 thread: (env_step, return) per
