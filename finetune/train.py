@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -255,7 +256,10 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
     fingerprint, counters)."""
     device = resolve_device(cfg.device)
     if cfg.threads:
-        torch.set_num_threads(cfg.threads)
+        cpus = os.cpu_count() or cfg.threads
+        if cfg.threads > cpus:  # thousands of threads fail to allocate their stacks deep inside a library
+            print(f"note: threads {cfg.threads} is more than this machine's {cpus} CPUs; using {cpus}", file=sys.stderr)
+        torch.set_num_threads(min(cfg.threads, cpus))
     torch.manual_seed(cfg.seed)
     agent = build_agent(cfg, action_dim, pretrained, device, agent_class)
     fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
@@ -297,7 +301,9 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     else:
         seeds = [episode_seed(cfg.seed, i, counters["episodes"]) for i in range(cfg.num_envs)]
     eval_env = task_env(cfg, cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]))
-    replay.load(action_dim)
+    if not replay.load(action_dim) and counters["episodes"]:
+        print(f"note: {logdir / 'replay'} holds none of the {int(counters['episodes'])} episodes this run stored (moved "
+              "or deleted?): it trains on the episodes it collects from here", file=sys.stderr)
     logger = Logger(logdir)
     try:
         envs = make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from finetune.config import FinetuneError, load_config
 from finetune.agent import Agent
 from finetune.envs.base import PixelEnv
 from finetune.run_dir import BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, save_checkpoint
-from finetune.train import build_agent, evaluate, resolve_device, train
+from finetune.train import build_agent, evaluate, resolve_device, start_run, train
 from model.export import export_frozen
 from model.world_model import WorldModel
 
@@ -100,7 +101,10 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     del older["counters"]["best_return"], older["counters"]["best_at"]
     torch.save(older, logdir / CHECKPOINT)
     kept_bytes = (logdir / BEST).read_bytes()
+    (logdir / "replay").rename(tmp_path / "replay-moved")  # and its replay moved away: the resume says so
+    capsys.readouterr()
     assert main(args + ["--steps", "320"]) == 0
+    assert f"note: {logdir / 'replay'} holds none of the 7 episodes this run stored" in capsys.readouterr().err
     assert (logdir / BEST).read_bytes() == kept_bytes
     assert torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]["best_return"] == 1e9
 
@@ -258,3 +262,17 @@ def test_evaluation_counts_an_episode_solved_at_any_step_and_normalises_its_retu
     assert result["success_rate"] == 1.0
     assert result["return"] == 8.0 and result["return_std"] == 0.0  # 4 agent steps × 2 simulator steps × 1
     assert result["normalised_return"] == pytest.approx((8.0 - 71.0) / (821.0 - 71.0))
+
+
+def test_more_threads_than_cpus_are_capped_with_a_note(tmp_path, capsys):
+    """threads=100000 failed to allocate the threads' stacks deep inside a library; the run uses the machine's CPUs."""
+    cfg = load_config("configs/finetune/demo.yaml", dict(agent="scratch", hidden=24, units=32, threads=100_000,
+                                                         device="cpu", logdir=str(tmp_path)))
+    threads = torch.get_num_threads()
+    try:
+        start_run(cfg, None, Agent, 1, {"env_step": 0}, np.random.default_rng(0))
+        assert torch.get_num_threads() == os.cpu_count()
+    finally:
+        torch.set_num_threads(threads)
+    assert f"threads 100000 is more than this machine's {os.cpu_count()} CPUs; using {os.cpu_count()}" in \
+        capsys.readouterr().err
