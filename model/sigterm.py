@@ -4,7 +4,7 @@ SLURM (`scancel`, a job's time limit, preemption) and Kubernetes send SIGTERM to
 Lightning 2.6's handler then calls `torch.distributed.broadcast` inside the signal handler, on every rank, at
 whatever point each rank is (inside DDP's gradient all-reduce, inside the step's own broadcast of the flag): the
 collectives no longer pair up, and the fit hangs without writing a checkpoint (5 of 6 tries with 2 gloo ranks,
-docs/pretraining.md). While the fit trains, this callback stands in for that handler: the signal only sets a flag
+docs/pretraining.md). From the sanity check on, this callback stands in for that handler: the signal only sets a flag
 (and is passed on to the ranks that Lightning's launcher started from this process, as Lightning does), and after
 every step the ranks take the maximum of their flags in one all-reduce of one number. When any rank was signalled,
 all of them set Lightning's own `received_sigterm` after that same step, so that Lightning raises its
@@ -27,6 +27,9 @@ class AgreedSigterm(Callback):
     def __init__(self) -> None:
         self.signalled = False  # this rank got SIGTERM (from the cluster or from the rank that started it)
         self.launcher = None
+
+    def on_sanity_check_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
+        self.on_train_start(trainer, pl_module)  # the first hook after Lightning registers its handler
 
     def on_train_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
         if trainer.world_size > 1 and threading.current_thread() is threading.main_thread():
