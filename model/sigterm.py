@@ -8,7 +8,8 @@ docs/pretraining.md). From the sanity check on, this callback stands in for that
 (and is passed on to the ranks that Lightning's launcher started from this process, as Lightning does), and after
 every step the ranks take the maximum of their flags in one all-reduce of one number. When any rank was signalled,
 all of them set Lightning's own `received_sigterm` after that same step, so that Lightning raises its
-SIGTERMException on every rank at the end of it, where `LastStepCheckpoint` writes last.ckpt. A single process
+SIGTERMException on every rank at the end of it, where `LastStepCheckpoint` writes last.ckpt; a step that validates
+runs its validation to its end first (Lightning would raise inside it, where no checkpoint is written). A single process
 (no DDP) keeps Lightning's handler, which works there. Lightning restores the handlers it found when the fit ends.
 """
 
@@ -27,6 +28,7 @@ class AgreedSigterm(Callback):
     def __init__(self) -> None:
         self.signalled = False  # this rank got SIGTERM (from the cluster or from the rank that started it)
         self.launcher = None
+        self.stopping = False  # the ranks agreed to stop after this step
 
     def on_sanity_check_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
         self.on_train_start(trainer, pl_module)  # the first hook after Lightning registers its handler
@@ -49,4 +51,12 @@ class AgreedSigterm(Callback):
         torch.distributed.all_reduce(signalled, op=torch.distributed.ReduceOp.MAX)
         if signalled.item():
             # Lightning's own flag (it has no setter): the training loop raises SIGTERMException after this batch
+            self.stopping = trainer._signal_connector.received_sigterm = True
+
+    def on_validation_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
+        if self.stopping:  # the step validates: its evaluation loop would raise after its first batch
+            trainer._signal_connector.received_sigterm = False
+
+    def on_validation_end(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
+        if self.stopping:  # raised after the validation, with the fit's state a whole step's
             trainer._signal_connector.received_sigterm = True

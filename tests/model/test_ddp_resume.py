@@ -19,8 +19,9 @@ from model.module import PretrainModule
 from conftest import REPO, TINY_CONFIG  # noqa: I001 (tests/model/conftest.py)
 
 
-def ddp_fit(shards: Path, root: Path, callbacks: list[str]) -> subprocess.CompletedProcess:
-    """`hauwm pretrain fit` of tiny.yaml for 5 steps with 2 gloo ranks on the CPU, with these callbacks (YAML items)."""
+def ddp_fit(shards: Path, root: Path, callbacks: list[str], args: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
+    """`hauwm pretrain fit` of tiny.yaml for 5 steps with 2 gloo ranks on the CPU, with these callbacks (YAML items)
+    and `args` after the others."""
     extra = root / "callbacks.yaml"
     extra.parent.mkdir(parents=True, exist_ok=True)
     extra.write_text("trainer:\n  callbacks:\n    - class_path: data_pipeline.SetEpoch\n" + "".join(callbacks))
@@ -28,7 +29,7 @@ def ddp_fit(shards: Path, root: Path, callbacks: list[str]) -> subprocess.Comple
                "--data.shards", str(shards), "--data.val_split", "train", "--data.batch_size", "2",
                "--data.seq_len", "6", "--data.num_workers", "0", "--trainer.limit_val_batches", "0",
                "--trainer.devices", "2", "--trainer.strategy", "ddp", "--trainer.max_steps", "5",
-               "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", str(root / "run")]
+               "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", str(root / "run"), *args]
     python_path = [str(Path(__file__).parent), str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(python_path), "OMP_NUM_THREADS": "1", "PL_DISABLE_FORK": "1"}
     return subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
@@ -53,6 +54,18 @@ def test_sigterm_to_every_rank_at_different_points_stops_them_after_the_same_ste
     step 3, and the fit exits with 143."""
     checkpoints = "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n      init_args:\n        save_last: true\n"
     done = ddp_fit(built_shards, tmp_path, [checkpoints, "    - class_path: rank_report.SigtermEveryRank\n"])
+    assert done.returncode == 143, done.stderr[-3000:]
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert f"terminated (SIGTERM) at step 3; resume with --ckpt_path {last} (step 3, " in done.stderr
+    assert torch.load(last, weights_only=False)["global_step"] == 3
+
+
+def test_sigterm_to_every_rank_before_a_step_that_validates_writes_last_ckpt_after_it(built_shards, tmp_path):
+    """The step the ranks agree to stop after (3) validates (every 3 steps, 2 batches): its validation runs to its
+    end and last.ckpt holds step 3 (Lightning raised inside the validation, where no checkpoint is written)."""
+    checkpoints = "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n      init_args:\n        save_last: true\n"
+    done = ddp_fit(built_shards, tmp_path, [checkpoints, "    - class_path: rank_report.SigtermEveryRank\n"],
+                   ("--trainer.limit_val_batches", "2", "--trainer.val_check_interval", "3"))
     assert done.returncode == 143, done.stderr[-3000:]
     last = tmp_path / "run" / "checkpoints" / "last.ckpt"
     assert f"terminated (SIGTERM) at step 3; resume with --ckpt_path {last} (step 3, " in done.stderr
