@@ -43,3 +43,11 @@ class SigtermEveryRank(L.Callback):
     def on_after_backward(self, trainer, pl_module):
         if trainer.global_step == 2 and trainer.global_rank != 0:
             os.kill(os.getpid(), signal.SIGTERM)
+
+
+class SigtermInSanityCheck(L.Callback):
+    """SIGTERM to each rank during the sanity check's first batch, before the fit trains."""
+
+    def on_validation_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0):
+        if trainer.sanity_checking and batch_idx == 0:
+            os.kill(os.getpid(), signal.SIGTERM)

@@ -19,7 +19,8 @@ from model.module import PretrainModule
 from conftest import REPO, TINY_CONFIG  # noqa: I001 (tests/model/conftest.py)
 
 
-def ddp_fit(shards: Path, root: Path, callbacks: list[str], args: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
+def ddp_fit(shards: Path, root: Path, callbacks: list[str], args: tuple[str, ...] = (),
+            timeout: float = 300) -> subprocess.CompletedProcess:
     """`hauwm pretrain fit` of tiny.yaml for 5 steps with 2 gloo ranks on the CPU, with these callbacks (YAML items)
     and `args` after the others."""
     extra = root / "callbacks.yaml"
@@ -32,7 +33,7 @@ def ddp_fit(shards: Path, root: Path, callbacks: list[str], args: tuple[str, ...
                "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", str(root / "run"), *args]
     python_path = [str(Path(__file__).parent), str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(python_path), "OMP_NUM_THREADS": "1", "PL_DISABLE_FORK": "1"}
-    return subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    return subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
 
 
 def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shards, tmp_path):
@@ -70,6 +71,16 @@ def test_sigterm_to_every_rank_before_a_step_that_validates_writes_last_ckpt_aft
     last = tmp_path / "run" / "checkpoints" / "last.ckpt"
     assert f"terminated (SIGTERM) at step 3; resume with --ckpt_path {last} (step 3, " in done.stderr
     assert torch.load(last, weights_only=False)["global_step"] == 3
+
+
+def test_sigterm_to_every_rank_in_the_sanity_check_stops_them_after_the_first_step(built_shards, tmp_path):
+    """A SIGTERM before the fit trains (here in its sanity check) reached Lightning's own handler, which hung."""
+    checkpoints = "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n      init_args:\n        save_last: true\n"
+    done = ddp_fit(built_shards, tmp_path, [checkpoints, "    - class_path: rank_report.SigtermInSanityCheck\n"],
+                   ("--trainer.limit_val_batches", "2", "--trainer.num_sanity_val_steps", "1"), timeout=120)
+    assert done.returncode == 143, done.stderr[-3000:]
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert f"terminated (SIGTERM) at step 1; resume with --ckpt_path {last} (step 1, " in done.stderr
 
 
 class ResumableBatches:
