@@ -181,7 +181,7 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
             raise ConfigError(f"config file {path} {what} ({WHERE_CONFIGS_ARE})")
         try:
             values = yaml.load(path.read_text(), UniqueKeyLoader)
-        except yaml.YAMLError as err:
+        except (yaml.YAMLError, UnicodeDecodeError) as err:  # a binary file (a checkpoint) is no text
             raise not_yaml(path, err) from None
         if values is None:  # an empty file (or comments only), more likely a slip than a wish for every default
             raise ConfigError(f"config file {path} holds no settings: a config names at least its task ({WHERE_CONFIGS_ARE})")

@@ -28,8 +28,9 @@ class ConfigError(ValueError):
     """A setting or combination of settings that cannot train; the message names the flag and the fix."""
 
 
-def not_yaml(path: Path, err: yaml.YAMLError) -> ConfigError:
-    """A config file that YAML cannot read, named with the line and column where it went wrong."""
+def not_yaml(path: Path, err: yaml.YAMLError | UnicodeDecodeError) -> ConfigError:
+    """A config file that YAML cannot read (or that is not UTF-8 text), named with the line and column where it went
+    wrong."""
     mark = getattr(err, "problem_mark", None)
     where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
     return ConfigError(f"config file {path} is not valid YAML: {getattr(err, 'problem', None) or err}{where}")

@@ -85,7 +85,7 @@ def refuse_bad_configs(args: list[str]) -> None:
         path = Path(value or (args[index + 1] if index + 1 < len(args) else ""))
         try:
             config = yaml.safe_load(path.read_text()) if path.is_file() else None
-        except yaml.YAMLError as err:  # the parser would not say which of the --config files
+        except (yaml.YAMLError, UnicodeDecodeError) as err:  # the parser would not say which of the --config files
             raise not_yaml(path, err) from None
         model = config.get("model") if isinstance(config, dict) else None
         flat = sorted(sizes & set(model)) if isinstance(model, dict) else []

@@ -131,3 +131,12 @@ def test_a_config_that_is_not_yaml_or_a_value_of_another_kind_is_refused_by_name
     with pytest.raises(ConfigError, match="setting task must be text, got 5"):
         load_config(None, dict([parse_override("task=5")]))
     assert load_config(None, dict([parse_override("dataset=null")])).dataset is None
+
+
+def test_a_config_file_that_is_not_text_is_refused_by_name(tmp_path):
+    """A binary file given as --config (a checkpoint, an export's weights) is a ConfigError naming it, not a
+    UnicodeDecodeError traceback."""
+    binary = tmp_path / "weights.yaml"
+    binary.write_bytes(b"\xdd\x00\xff binary")
+    with pytest.raises(ConfigError, match=f"config file {binary} is not valid YAML: 'utf-8' codec can't decode"):
+        load_config(binary)

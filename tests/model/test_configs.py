@@ -127,3 +127,11 @@ def test_the_gpu_config_on_a_cpu_machine_says_which_flags_make_it_run(built_shar
            "cpu --trainer.devices 1 --trainer.strategy auto" in capsys.readouterr().err
     assert main(gpu + ["--trainer.accelerator", "cpu"]) == 2
     assert "trainer.devices -1 means every GPU, and this run is on the CPU" in capsys.readouterr().err
+
+
+def test_a_config_file_that_is_not_text_is_named(capsys, tmp_path):
+    binary = tmp_path / "last.ckpt"
+    binary.write_bytes(b"\xdd\x00\xff binary")
+    assert main(["fit", "--config", str(CONFIGS / "tiny.yaml"), "--config", str(binary), "--data.shards",
+                 str(tmp_path)]) == 2
+    assert f"error: config file {binary} is not valid YAML: 'utf-8' codec can't decode" in capsys.readouterr().err
