@@ -59,7 +59,7 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
     out.mkdir(parents=True, exist_ok=True)
     tensors = {name: t.detach().float().contiguous().cpu() for name, t in model.state_dict().items()}
     # one metadata entry: safetensors writes several in a different order each process, and fine-tuning runs
-    # recognise their export by the file's sha256 (finetune/train.py), so the same model must give the same bytes
+    # recognise their export by the file's sha256 (finetune/run_dir.py), so the same model must give the same bytes
     # safetensors' save_file makes the file readable by its owner only; written as bytes it follows the umask, so an
     # export on shared storage is readable by whoever may read the directory
     weights = save(tensors, metadata={"hauwm": f"{KIND}, schema_version {SCHEMA_VERSION}"})
