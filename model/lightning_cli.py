@@ -249,7 +249,7 @@ class PretrainCLI(LightningCLI):
         # a fit stopped at max_steps, max_time or by SIGTERM resumes inside its epoch; before the notice, which
         # names the checkpoint it wrote
         callbacks.append(LastStepCheckpoint())
-        callbacks.append(AgreedSigterm())  # under DDP, all ranks stop after the same step
+        callbacks.append(AgreedSigterm())  # SIGTERM: stop after the step (under DDP, the same one on all ranks)
         callbacks.append(self.notice)  # with or without a progress bar
         if type(self.trainer.strategy.checkpoint_io) is TorchCheckpointIO:  # a user's own plugin stays
             self.trainer.strategy.checkpoint_io = AtomicCheckpointIO()

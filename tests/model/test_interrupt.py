@@ -1,7 +1,7 @@
 """Ctrl-C during `hauwm pretrain fit`: Lightning stops the fit with sys.exit(1) and no checkpoint of its own; the
 last line names the step reached and the checkpoint to resume from, with or without a progress bar, and the
-command exits with 130. SIGTERM (a cluster's preemption): the fit writes last.ckpt at the step it stopped at and
-exits with 143. Checkpoints are written whole even where $TMPDIR is another filesystem."""
+command exits with 130. SIGTERM (a cluster's preemption): the fit writes last.ckpt at the step it stopped at (after
+that step's validation, if it has one) and exits with 143. Checkpoints are written whole even where $TMPDIR is another filesystem."""
 
 from __future__ import annotations
 
@@ -83,6 +83,17 @@ def test_sigterm_writes_the_checkpoint_of_the_step_it_stops_at_and_exits_143(bui
     resumed, unbroken = (torch.load(root / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
                          for root in (tmp_path, tmp_path / "unbroken"))
     assert resumed.keys() == unbroken.keys() and all(torch.equal(resumed[key], unbroken[key]) for key in resumed)
+
+
+def test_sigterm_before_a_step_that_validates_lets_it_validate_then_writes_its_checkpoint(built_shards, tmp_path,
+                                                                                         capsys):
+    """Lightning's own handler raised inside the validation of step 4 (after its first of 2 batches), where no
+    checkpoint is written."""
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.val_check_interval", "4",
+               "--data.val_batches", "2", "--trainer.callbacks+=test_interrupt.Sigterm") == 143
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    assert f"terminated (SIGTERM) at step 4; resume with --ckpt_path {last} (step 4, written " in capsys.readouterr().err
+    assert torch.load(last, weights_only=False)["global_step"] == 4
 
 
 def test_a_checkpoint_is_written_whole_beside_the_old_one_then_renamed(tmp_path, monkeypatch):
