@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from model.networks import IMAGE_SHAPE
+
 KEYS = ("obs", "action", "reward")
 
 
@@ -29,34 +31,32 @@ class ReplayError(RuntimeError):
     pass
 
 
-def read_episode(path: Path, like: dict[str, np.ndarray] | None = None, action_dim: int | None = None) -> dict[str, np.ndarray]:
-    """One episode file: obs uint8 [T+1, 3, H, W], action float32 [T+1, A], reward float32 [T+1]; with `like` (an
-    episode of the same replay) and `action_dim`, of their frame size and action width (a file of another task or
-    run among them would stop the first batch that draws it in a numpy error)."""
+def read_episode(path: Path, action_dim: int | None = None) -> dict[str, np.ndarray]:
+    """One episode file: obs uint8 [T+1, 3, 64, 64], action float32 [T+1, A], reward float32 [T+1], A = `action_dim`
+    where given (a file of another task or run would stop the first batch that draws it in a numpy error)."""
     try:
         with np.load(path, allow_pickle=False) as data:
             episode = {key: data[key] for key in KEYS}
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
         raise ReplayError(f"{path}: this replay episode cannot be read ({err}); it is damaged: restore it, or delete "
                           "it and the run goes on without that episode") from None
-    if problem := layout_problem(episode, like, action_dim):
+    if problem := layout_problem(episode, action_dim):
         raise ReplayError(f"{path}: {problem}: an episode of another run or task? move it out of {path.parent}")
     return episode
 
 
-def layout_problem(episode: dict[str, np.ndarray], like: dict[str, np.ndarray] | None = None,
-                   action_dim: int | None = None) -> str | None:
-    """Why `episode` cannot join a replay (holding `like`, acting with `action_dim`), or None when it can."""
+def layout_problem(episode: dict[str, np.ndarray], action_dim: int | None = None) -> str | None:
+    """Why `episode` cannot join a replay of the world model's frames (IMAGE_SHAPE) and actions of `action_dim`
+    dimensions, or None when it can."""
     obs, action, reward = (episode[key] for key in KEYS)
-    if not (obs.dtype == np.uint8 and obs.ndim == 4 and obs.shape[1] == 3 and action.ndim == 2 and reward.ndim == 1
+    if not (obs.dtype == np.uint8 and obs.ndim == 4 and action.ndim == 2 and reward.ndim == 1
             and len(obs) == len(action) == len(reward)):
         return (f"it holds obs {obs.dtype} {list(obs.shape)}, action {list(action.shape)} and reward {list(reward.shape)}, "
                 "not a replay episode's obs uint8 [T+1, 3, H, W], action [T+1, A] and reward [T+1]")
-    width = action_dim if action_dim is not None else None if like is None else like["action"].shape[1]
-    if width is not None and action.shape[1] != width:
-        return f"its actions have {action.shape[1]} dimensions, the run's {width}"
-    if like is not None and obs.shape[1:] != like["obs"].shape[1:]:
-        return f"its frames are {list(obs.shape[1:])}, the run's other episodes' {list(like['obs'].shape[1:])}"
+    if obs.shape[1:] != IMAGE_SHAPE:
+        return f"its frames are {list(obs.shape[1:])}, the world model's {list(IMAGE_SHAPE)}"
+    if action_dim is not None and action.shape[1] != action_dim:
+        return f"its actions have {action.shape[1]} dimensions, the run's {action_dim}"
     return None
 
 
@@ -96,11 +96,8 @@ class Replay:
                 break
             chosen.append(path)
             steps += length
-        like = None
         for path in reversed(chosen):
-            episode = read_episode(path, like, action_dim)
-            like = episode if like is None else like
-            self._keep(episode)
+            self._keep(read_episode(path, action_dim))
         return len(chosen)
 
     def _keep(self, episode: dict[str, np.ndarray]) -> None:

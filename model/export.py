@@ -72,13 +72,20 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
         "normalisation": NORMALISATION,
         "provenance": provenance or {},
     }
-    # both written beside their names first, then renamed one after the other: an export replaced with --overwrite
-    # is never half written (a kill or a full disk leaves the old files, whole)
-    files = {WEIGHTS_FILE: weights, CONFIG_FILE: (json.dumps(config, indent=2) + "\n").encode()}
-    for name, data in files.items():
-        (out / f".{name}.partial").write_bytes(data)
-    for name in files:
-        os.replace(out / f".{name}.partial", out / name)
+    # both written beside their names first, then renamed one after the other: a full disk or a kill while they are
+    # written (seconds at paper sizes) leaves an export replaced with --overwrite as it was, whole; only a kill between
+    # the two renames could pair the new weights with the old config.json
+    files = {out / f".{name}.partial": (out / name, data) for name, data in
+             ((WEIGHTS_FILE, weights), (CONFIG_FILE, (json.dumps(config, indent=2) + "\n").encode()))}
+    try:
+        for partial, (_, data) in files.items():
+            partial.write_bytes(data)
+    except BaseException:
+        for partial in files:
+            partial.unlink(missing_ok=True)
+        raise
+    for partial, (path, _) in files.items():
+        os.replace(partial, path)
     return out
 
 

@@ -124,12 +124,12 @@ def replay_episodes(rundir: str | Path, limit: int | None = None) -> tuple[dict[
 
 
 def consistent_episodes(paths: list[Path]) -> Iterator[dict[str, np.ndarray]]:
-    """The replay episodes in `paths`, each of the first one's frame size and action width (ReplayError if not: a
-    dataset's episodes must fit its one action space)."""
+    """The replay episodes in `paths`, each of the world model's frame size and the first one's action width
+    (ReplayError if not: a dataset's episodes must fit its one action space)."""
     from finetune.replay import read_episode
 
-    like = None
+    action_dim = None
     for path in paths:
-        episode = read_episode(path, like)
-        like = episode if like is None else like
+        episode = read_episode(path, action_dim)
+        action_dim = episode["action"].shape[1]
         yield episode

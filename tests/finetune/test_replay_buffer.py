@@ -119,8 +119,11 @@ def test_an_episode_of_another_task_in_the_replay_is_named_not_a_numpy_error(tmp
     with pytest.raises(ReplayError, match=f"000002-5.npz: its actions have 4 dimensions, the run's 2: an episode of "
                                           f"another run or task\\? move it out of {tmp_path}"):
         Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(action_dim=2)
-    with pytest.raises(ReplayError, match="000002-5.npz: its actions have 4 dimensions, the run's 2"):  # without it,
-        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load()  # the oldest sets what the rest must be
+    larger = episode(0, 5) | {"obs": np.zeros((6, 3, 84, 84), np.uint8)}  # the oldest file is the foreign one
+    np.savez_compressed(tmp_path / "000000-5.npz", **larger)
+    with pytest.raises(ReplayError, match=r"000000-5.npz: its frames are \[3, 84, 84\], the world model's \[3, 64, 64\]"):
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load()
+    (tmp_path / "000000-5.npz").unlink()
     np.savez_compressed(tmp_path / "000002-5.npz", **(foreign | {"obs": foreign["obs"][:, 0]}))  # frames lose a dim
     with pytest.raises(ReplayError, match=r"000002-5.npz: it holds obs uint8 \[6, 64, 64\], action \[6, 4\]"):
         Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(action_dim=2)
