@@ -36,6 +36,18 @@ def ddp_fit(shards: Path, root: Path, callbacks: list[str], args: tuple[str, ...
     return subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
 
 
+# a callbacks item that writes last.ckpt (ddp_fit's callbacks replace tiny.yaml's list)
+SAVE_LAST = "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n      init_args:\n        save_last: true\n"
+
+
+def assert_terminated_at(done: subprocess.CompletedProcess, run: Path, step: int) -> None:
+    """The fit exited with 143 after `step`, said so, and last.ckpt holds that step."""
+    assert done.returncode == 143, done.stderr[-3000:]
+    last = run / "checkpoints" / "last.ckpt"
+    assert f"terminated (SIGTERM) at step {step}; resume with --ckpt_path {last} (step {step}, " in done.stderr
+    assert torch.load(last, weights_only=False)["global_step"] == step
+
+
 def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shards, tmp_path):
     reports = tmp_path / "reports"
     done = ddp_fit(built_shards, tmp_path,
@@ -53,34 +65,23 @@ def test_sigterm_to_every_rank_at_different_points_stops_them_after_the_same_ste
     """As SLURM sends it: each rank gets SIGTERM, rank 0 before step 3's batch and rank 1 inside its backward pass
     (rank_report.SigtermEveryRank). Lightning's own handler hung here; every rank stops after step 3, last.ckpt holds
     step 3, and the fit exits with 143."""
-    checkpoints = "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n      init_args:\n        save_last: true\n"
-    done = ddp_fit(built_shards, tmp_path, [checkpoints, "    - class_path: rank_report.SigtermEveryRank\n"])
-    assert done.returncode == 143, done.stderr[-3000:]
-    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
-    assert f"terminated (SIGTERM) at step 3; resume with --ckpt_path {last} (step 3, " in done.stderr
-    assert torch.load(last, weights_only=False)["global_step"] == 3
+    done = ddp_fit(built_shards, tmp_path, [SAVE_LAST, "    - class_path: rank_report.SigtermEveryRank\n"])
+    assert_terminated_at(done, tmp_path / "run", step=3)
 
 
 def test_sigterm_to_every_rank_before_a_step_that_validates_writes_last_ckpt_after_it(built_shards, tmp_path):
     """The step the ranks agree to stop after (3) validates (every 3 steps, 2 batches): its validation runs to its
     end and last.ckpt holds step 3 (Lightning raised inside the validation, where no checkpoint is written)."""
-    checkpoints = "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n      init_args:\n        save_last: true\n"
-    done = ddp_fit(built_shards, tmp_path, [checkpoints, "    - class_path: rank_report.SigtermEveryRank\n"],
+    done = ddp_fit(built_shards, tmp_path, [SAVE_LAST, "    - class_path: rank_report.SigtermEveryRank\n"],
                    ("--trainer.limit_val_batches", "2", "--trainer.val_check_interval", "3"))
-    assert done.returncode == 143, done.stderr[-3000:]
-    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
-    assert f"terminated (SIGTERM) at step 3; resume with --ckpt_path {last} (step 3, " in done.stderr
-    assert torch.load(last, weights_only=False)["global_step"] == 3
+    assert_terminated_at(done, tmp_path / "run", step=3)
 
 
 def test_sigterm_to_every_rank_in_the_sanity_check_stops_them_after_the_first_step(built_shards, tmp_path):
     """A SIGTERM before the fit trains (here in its sanity check) reached Lightning's own handler, which hung."""
-    checkpoints = "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n      init_args:\n        save_last: true\n"
-    done = ddp_fit(built_shards, tmp_path, [checkpoints, "    - class_path: rank_report.SigtermInSanityCheck\n"],
+    done = ddp_fit(built_shards, tmp_path, [SAVE_LAST, "    - class_path: rank_report.SigtermInSanityCheck\n"],
                    ("--trainer.limit_val_batches", "2", "--trainer.num_sanity_val_steps", "1"), timeout=120)
-    assert done.returncode == 143, done.stderr[-3000:]
-    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
-    assert f"terminated (SIGTERM) at step 1; resume with --ckpt_path {last} (step 1, " in done.stderr
+    assert_terminated_at(done, tmp_path / "run", step=1)
 
 
 class ResumableBatches:
