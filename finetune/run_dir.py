@@ -178,7 +178,7 @@ def refuse_other_run(cfg: FinetuneConfig) -> None:
     path = Path(cfg.logdir) / "config.yaml"
     try:
         written = yaml.safe_load(path.read_text()) if path.is_file() else None
-    except (OSError, yaml.YAMLError):
+    except (OSError, yaml.YAMLError, UnicodeDecodeError):
         written = None  # unreadable: nothing to compare with; it is written again
     if isinstance(written, dict) and (changed := changed_settings(cfg, written)):
         raise FinetuneError(f"{cfg.logdir} holds a run with {', '.join(changed[:3])} that stopped before its first "
@@ -238,7 +238,7 @@ def run_config(logdir: str | Path, overrides: dict[str, object] | None = None) -
         raise FinetuneError(f"{logdir} is not a `hauwm finetune` run directory (no config.yaml)")
     try:
         written = yaml.safe_load(path.read_text())
-    except yaml.YAMLError:
+    except (yaml.YAMLError, UnicodeDecodeError):
         written = None  # load_config below says what is wrong with the file
     written = written if isinstance(written, dict) else {}
     before = settings_before_they_existed(str(written.get("paradigm", "online")))

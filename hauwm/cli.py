@@ -60,6 +60,14 @@ def out_of_memory(err: BaseException) -> bool:
         isinstance(err, RuntimeError) and "can't allocate memory" in str(err))
 
 
+def memory_ran_out(stage: str, err: BaseException) -> int:
+    """Say in one line that `stage` ran out of memory, and what lowers its memory; the exit status."""
+    what = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    print(f"hauwm {stage}: error: out of memory ({what}): {SMALLER.get(stage, 'lower the sizes this command was given')}",
+          file=sys.stderr)
+    return 2
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
@@ -81,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush goes nowhere
         return 128 + signal.SIGPIPE
     except OSError as err:  # a path a stage could not make, read or write: one line naming it, not a traceback
+        if err.errno == errno.ENOMEM:  # a fork or mmap the host had no memory for
+            return memory_ran_out(argv[0], err)
         if err.filename is None and err.errno not in FULL:  # not about a path (a socket, a library's own failure)
             raise
         print(f"hauwm {argv[0]}: error: {path_problem(err)}", file=sys.stderr)
@@ -88,10 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     except (MemoryError, RuntimeError) as err:
         if not out_of_memory(err):
             raise
-        what = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        hint = SMALLER.get(argv[0], "lower the sizes this command was given")
-        print(f"hauwm {argv[0]}: error: out of memory ({what}): {hint}", file=sys.stderr)
-        return 2
+        return memory_ran_out(argv[0], err)
 
 
 if __name__ == "__main__":

@@ -69,8 +69,9 @@ def test_a_full_disk_is_named_and_other_os_errors_keep_their_traceback(monkeypat
 
 @pytest.mark.parametrize("error", [RuntimeError("[enforce fail at alloc_cpu.cpp:121] data. DefaultCPUAllocator: can't "
                                                 "allocate memory: you tried to allocate 58982400000 bytes."),
-                                   MemoryError("Unable to allocate 55.0 GiB for an array")],
-                         ids=["torch", "numpy"])
+                                   MemoryError("Unable to allocate 55.0 GiB for an array"),
+                                   OSError(errno.ENOMEM, "Cannot allocate memory")],
+                         ids=["torch", "numpy", "mmap"])
 def test_memory_that_ran_out_is_one_line_naming_what_to_lower(monkeypatch, capsys, error):
     stage = types.ModuleType("model.cli")
 

@@ -13,7 +13,8 @@ from finetune.cli import best_kept, main
 from finetune.config import FinetuneError, load_config
 from finetune.agent import Agent
 from finetune.envs.base import PixelEnv
-from finetune.run_dir import BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, save_checkpoint
+from finetune.run_dir import (BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, run_config,
+                               save_checkpoint)
 from finetune.train import build_agent, evaluate, resolve_device, start_run, train
 from model.export import export_frozen
 from model.world_model import WorldModel
@@ -276,3 +277,9 @@ def test_more_threads_than_cpus_are_capped_with_a_note(tmp_path, capsys):
         torch.set_num_threads(threads)
     assert f"threads 100000 is more than this machine's {os.cpu_count()} CPUs; using {os.cpu_count()}" in \
         capsys.readouterr().err
+
+
+def test_a_run_directory_whose_config_yaml_is_not_text_is_named(tmp_path):
+    (tmp_path / "config.yaml").write_bytes(bytes(range(256)))  # a checkpoint copied over it, say
+    with pytest.raises(FinetuneError, match=f"{tmp_path / 'config.yaml'}: config file .* is not valid YAML"):
+        run_config(tmp_path)
