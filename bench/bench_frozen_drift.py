@@ -31,11 +31,10 @@ from bench.bench_learning import UniformOrConstant  # noqa: E402
 from bench.machine import describe_machine  # noqa: E402
 from finetune.rollout import play_episode  # noqa: E402
 from bench.bench_model_actions import constant_policy  # noqa: E402
-from finetune.config import load_config  # noqa: E402
+from finetune.config import FinetuneError, load_config  # noqa: E402
 from finetune.envs import make_env  # noqa: E402
 from finetune.pretrained import PretrainedError  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
-from finetune.config import FinetuneError  # noqa: E402
 from finetune.train import build_agent  # noqa: E402
 
 

@@ -111,10 +111,9 @@ def evaluate_run(argv: list[str]) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     from finetune.agent import DivergedError
-    from finetune.config import load_config, parse_override
+    from finetune.config import FinetuneError, load_config, parse_override
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
-    from finetune.config import FinetuneError
     from finetune.run_dir import CHECKPOINT
     from model.config import ConfigError
 
