@@ -152,20 +152,26 @@ def decode_sequence(sequence: dict, indices, out: np.ndarray | None = None) -> n
 
 
 def collate(sequences: list[dict]) -> dict:
-    """Sequences → the batch of docs/architecture.md §2, decoding only the L sampled frames of each clip."""
+    """Sequences → the batch of docs/architecture.md §2, decoding only the L sampled frames of each clip.
+
+    Every tensor of the batch is a view of one uint8 block: a batch crosses from a DataLoader worker to the
+    training process as one shared-memory region (each region costs the receiving thread a round trip to the
+    worker, a file descriptor over a socket, while the training step waits for the GIL)."""
     height, width = decode_sequence(sequences[0], [0]).shape[1:3]
-    frames = torch.empty((len(sequences), len(sequences[0]["indices"]), 3, height, width), dtype=torch.uint8)
+    indices = np.stack([s["indices"] for s in sequences])  # [B, L]
+    batch, length = indices.shape
+    frame_bytes = batch * length * 3 * height * width
+    integers = 2 * batch * length + 2 * batch  # gaps, indices [B, L]; num_frames, label [B]
+    start = -(-frame_bytes // 8) * 8  # the int64 fields start 8-byte aligned
+    block = torch.empty(start + 8 * integers, dtype=torch.uint8)
+    frames = block[:frame_bytes].view(batch, length, 3, height, width)
     for slot, sequence in zip(frames.numpy(), sequences):  # slot: [L, 3, H, W]
         # the decoded [L, H, W, 3] frames are written transposed straight into their slot (no second pass)
         decode_sequence(sequence, sequence["indices"], out=slot.transpose(0, 2, 3, 1))
-    indices = np.stack([s["indices"] for s in sequences])  # [B, L]
-    batch, length = indices.shape
-    # the four integer fields are contiguous views of one block: a batch crosses from a DataLoader worker to the
-    # training process as two shared-memory regions instead of five (each region costs the receiver a round trip)
-    fields = [gaps_of(indices).ravel(), indices.ravel(), [s["num_frames"] for s in sequences],
-              [s["label"] for s in sequences]]
-    block = torch.from_numpy(np.concatenate(fields, dtype=np.int64))
-    gaps, frame_indices, num_frames, label = block.split([batch * length, batch * length, batch, batch])
+    fields = block[start:].view(torch.int64)
+    np.concatenate([gaps_of(indices).ravel(), indices.ravel(), [s["num_frames"] for s in sequences],
+                    [s["label"] for s in sequences]], out=fields.numpy())
+    gaps, frame_indices, num_frames, label = fields.split([batch * length, batch * length, batch, batch])
     return {
         "frames": frames,  # uint8 [B, L, 3, H, W]
         "gaps": gaps.view(batch, length),  # int64 [B, L], gaps[:, 0] == 0
