@@ -3,12 +3,13 @@
 The run directory holds `checkpoint.pt` (CHECKPOINT), `best.pt` (BEST), `config.yaml`, `.lock` (LOCK), the
 replay's episodes in `replay/` (finetune/replay.py) and the CSV logs (finetune/logger.py). A checkpoint
 (save_checkpoint) holds the agent's trainable weights and its optimisers, torch's random state (and CUDA's),
-the replay sampler's state, the run's counters, its settings and the sha256 of the frozen export's weights; not
-the frozen export itself nor the replay's episodes. `best.pt` is the same, written by keep_best at each
+the replay sampler's state, the run's counters, its settings and its fingerprint (the sha256 of the frozen export's
+weights and, for offline RL and imitation, of the dataset's files); not the frozen export itself, the dataset nor
+the replay's episodes. `best.pt` is the same, written by keep_best at each
 evaluation with the highest mean return so far (its counters keep best_return and best_at).
 
 Starting a run in a directory that holds a checkpoint resumes it (`resume`). Reading any checkpoint
-(read_state) needs the same export and the settings that shape the agent; a resume may change only the
+(read_state) needs the same export (and dataset) and the settings that shape the agent; a resume may change only the
 RESUMABLE settings (budget, evaluation, logging and checkpoint cadence, how the run computes). A setting a
 checkpoint predates counts with the value runs had before it (settings_before_they_existed). A directory with
 a config.yaml but no checkpoint (a run stopped before its first) is refused if its settings differ. One
@@ -69,6 +70,21 @@ def exclusive(logdir: Path) -> Iterator[None]:
                         directory.rmdir()
 
 
+# what a run trains on, as a checkpoint records it: "export_sha256" ('' for the scratch baseline) and, for offline RL
+# and imitation, "dataset_sha256"
+Fingerprint = dict[str, str]
+
+
+def files_sha256(paths: Iterable[Path], root: Path) -> str:
+    """sha256 of the files `paths` (under `root`): their paths relative to root and their bytes, in sorted order."""
+    digest = hashlib.sha256()
+    for path in sorted(paths):
+        digest.update(str(path.relative_to(root)).encode() + b"\0")
+        with open(path, "rb") as file:
+            digest.update(hashlib.file_digest(file, "sha256").digest())
+    return digest.hexdigest()
+
+
 def export_fingerprint(pretrained: str | Path | None) -> str:
     """sha256 of the export's weights ('' for the scratch baseline): a resume must use the same export."""
     if pretrained is None:
@@ -77,14 +93,27 @@ def export_fingerprint(pretrained: str | Path | None) -> str:
         return hashlib.file_digest(weights, "sha256").hexdigest()
 
 
-def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: str,
-                    rng: np.random.Generator | None = None) -> None:
-    """Write the agent's trainable weights, its optimisers, torch's random state(s), `counters`, cfg and the export's
+def run_fingerprint(cfg: FinetuneConfig, pretrained: str | Path | None) -> Fingerprint:
+    """What the run of `cfg` trains on: the export (hauwm agents) and the dataset of an offline run (--dataset) or
+    the demonstrations of an imitation run (--demos): a dataset collected again under the same ID differs."""
+    from finetune.datasets.minari_io import dataset_path
+
+    fingerprint = {"export_sha256": export_fingerprint(pretrained if cfg.agent == "hauwm" else None)}
+    dataset_id = {"offline": cfg.dataset, "imitation": cfg.demos}.get(cfg.paradigm)
+    if dataset_id:
+        root = dataset_path(dataset_id)
+        fingerprint["dataset_sha256"] = files_sha256([path for path in root.rglob("*") if path.is_file()], root)
+    return fingerprint
+
+
+def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float],
+                    fingerprint: Fingerprint, rng: np.random.Generator | None = None) -> None:
+    """Write the agent's trainable weights, its optimisers, torch's random state(s), `counters`, cfg and the run's
     fingerprint to `path` (a .tmp file, then renamed: an interrupted write keeps the last checkpoint). `rng`: the
     replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
     state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
              "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state(),
-             "export_sha256": fingerprint}
+             **fingerprint}
     if agent.device.type == "cuda":  # the world model's noise and the actor's samples are drawn there
         state["cuda_rng"] = torch.cuda.get_rng_state(agent.device)
     if rng is not None:
@@ -100,7 +129,7 @@ def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dic
     os.replace(tmp, path)
 
 
-def keep_best(logdir: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: str,
+def keep_best(logdir: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: Fingerprint,
               result: dict[str, float], step: int) -> None:
     """Save the agent to logdir/BEST when evaluation `result` (at `step`) has the run's highest mean return so
     far (the first of equals); `counters` keep that return and step, so a resumed run goes on comparing."""
@@ -118,10 +147,11 @@ def settings_before_they_existed(paradigm: str) -> dict[str, object]:
     return before
 
 
-def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str,
+def read_state(path: Path, cfg: FinetuneConfig, fingerprint: Fingerprint,
                remedy: str = "restore it, or train in another --logdir") -> dict:
-    """What save_checkpoint wrote to `path` (checkpoint.pt or best.pt), checked to be of this run: the same export
-    and the settings that shape the agent; a FinetuneError naming the file (and `remedy` if it cannot be read).
+    """What save_checkpoint wrote to `path` (checkpoint.pt or best.pt), checked to be of this run: the same export,
+    the same dataset (of the keys in `fingerprint`; a checkpoint that predates one is not checked for it) and the
+    settings that shape the agent; a FinetuneError naming the file (and `remedy` if it cannot be read).
     Read onto the CPU whatever the agent's device: loading the weights and optimizer states copies them to it,
     and torch.set_rng_state takes a CPU tensor only."""
     try:
@@ -134,9 +164,14 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: str,
         key, written = differing[0]
         raise FinetuneError(f"{path} was written by a run with {key}={written!r}, this run has "
                             f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
-    if state["export_sha256"] != fingerprint:
+    if state["export_sha256"] != fingerprint["export_sha256"]:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the export it was trained on (or, to train anew, another --logdir)")
+    if (dataset := fingerprint.get("dataset_sha256")) is not None and state.get("dataset_sha256", dataset) != dataset:
+        flag, dataset_id = ("--dataset", cfg.dataset) if cfg.paradigm == "offline" else ("--demos", cfg.demos)
+        raise FinetuneError(f"{path} was trained on another version of {flag} {dataset_id} (its files' sha256 "
+                            "differs: collected again, merged or changed since): restore the dataset it was trained "
+                            "on, or train in another --logdir")
     return state
 
 
@@ -186,7 +221,7 @@ def refuse_other_run(cfg: FinetuneConfig) -> None:
                             f"delete {cfg.logdir} first")
 
 
-def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: str,
+def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: Fingerprint,
                     rng: np.random.Generator | None = None, resuming: bool = False) -> dict[str, float]:
     """Restore `agent` (weights, optimizers), torch's and `rng`'s states from `path`; -> its counters. `resuming`:
     `cfg` goes on training it, so only RESUMABLE settings may differ from those it was trained with."""
@@ -206,7 +241,7 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
     return dict(state["counters"])
 
 
-def resume(cfg: FinetuneConfig, agent: Agent, fingerprint: str, counters: dict[str, float],
+def resume(cfg: FinetuneConfig, agent: Agent, fingerprint: Fingerprint, counters: dict[str, float],
            rng: np.random.Generator) -> dict[str, float]:
     """A run's start in cfg.logdir: its checkpoint if there is one (it restores the agent and `rng` and gives the
     counters; a fresh run keeps `counters`, once refuse_other_run lets it start), the best return best.pt holds if it
@@ -272,6 +307,6 @@ def load_trained(logdir: Path, pretrained: str | Path | None, action_dim: int,
     agent_class = {"online": Agent, "offline": OfflineAgent, "imitation": ImitationAgent}[cfg.paradigm]
     hauwm = pretrained if cfg.agent == "hauwm" else None
     agent = build_agent(cfg, action_dim, hauwm, device, agent_class)
-    counters = load_checkpoint(logdir / checkpoint, agent, cfg, export_fingerprint(hauwm))
+    counters = load_checkpoint(logdir / checkpoint, agent, cfg, {"export_sha256": export_fingerprint(hauwm)})
     agent.eval()
     return cfg, agent, counters

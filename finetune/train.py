@@ -30,7 +30,7 @@ from finetune.config import FinetuneConfig, FinetuneError, step_unit
 from finetune.logger import Logger
 from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
-from finetune.run_dir import CHECKPOINT, exclusive, export_fingerprint, keep_best, resume, save_checkpoint
+from finetune.run_dir import CHECKPOINT, Fingerprint, exclusive, keep_best, resume, run_fingerprint, save_checkpoint
 
 ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this (env 0: the seed a single env gets)
 HELD_OUT_SEED = 1_000_000_000  # `hauwm finetune evaluate` plays from the run's seed + this: an env seed the run's
@@ -132,7 +132,7 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
 
 
 def scheduled_evaluation(agent: Agent, eval_env, cfg: FinetuneConfig, seed: int | None, counters: dict[str, float],
-                         fingerprint: str, logger: Logger, window: LogWindow, bar: tqdm, progress: bool) -> dict[str, float]:
+                         fingerprint: Fingerprint, logger: Logger, window: LogWindow, bar: tqdm, progress: bool) -> dict[str, float]:
     """A run's evaluation once its counters reach next_eval (the online and offline loops'): `evaluate`, its time
     left out of the log window's updates/s and the progress bar's rate; written to eval.csv, kept in best.pt if it is
     the best so far (`keep_best`), and the next one scheduled. Its step is the paradigm's (`step_unit`)."""
@@ -249,11 +249,11 @@ def task_env(cfg: FinetuneConfig, seed: int):
 
 
 def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: type[Agent], action_dim: int,
-              counters: dict[str, float], rng: np.random.Generator) -> tuple[Agent, str, dict[str, float]]:
+              counters: dict[str, float], rng: np.random.Generator) -> tuple[Agent, Fingerprint, dict[str, float]]:
     """The start every paradigm shares: torch's threads and seed, the agent, and the run directory's checkpoint
     if there is one (`resume`: it restores the agent, `rng` and the counters; a fresh run keeps `counters`), the best
-    return best.pt holds if it is higher than the counters', and config.yaml written. -> (agent, the export's
-    fingerprint, counters)."""
+    return best.pt holds if it is higher than the counters', and config.yaml written. -> (agent, what the run
+    trains on (run_fingerprint), counters)."""
     device = resolve_device(cfg.device)
     if cfg.threads:
         cpus = os.cpu_count() or cfg.threads
@@ -262,7 +262,7 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
         torch.set_num_threads(min(cfg.threads, cpus))
     torch.manual_seed(cfg.seed)
     agent = build_agent(cfg, action_dim, pretrained, device, agent_class)
-    fingerprint = export_fingerprint(pretrained if cfg.agent == "hauwm" else None)
+    fingerprint = run_fingerprint(cfg, pretrained)
     counters = resume(cfg, agent, fingerprint, counters, rng)
     return agent, fingerprint, counters
 
@@ -319,7 +319,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
 
 
 def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, replay: Replay, rng: np.random.Generator,
-         logger: Logger, counters: dict[str, float], checkpoint: Path, fingerprint: str, progress: bool,
+         logger: Logger, counters: dict[str, float], checkpoint: Path, fingerprint: Fingerprint, progress: bool,
          reseed: bool) -> dict[str, float]:
     """Act in `envs` (a gymnasium vector env), store finished episodes, update, log, evaluate, checkpoint.
 

@@ -130,7 +130,7 @@ def test_collect_from_a_runs_replay_and_with_its_agent(tmp_path, tiny_config, ca
     for _ in range(2):
         replay.add(play_episode(env, RandomPolicy(env.action_space)))
     env.close()
-    save_checkpoint(rundir / CHECKPOINT, build_agent(cfg, 4, None, torch.device("cpu")), cfg, {}, "")
+    save_checkpoint(rundir / CHECKPOINT, build_agent(cfg, 4, None, torch.device("cpu")), cfg, {}, {"export_sha256": ""})
 
     assert main(["collect", "--from-run", str(rundir), "--dataset-id", "test/replay-v0", "--no-progress"]) == 0
     episodes = load_episodes("test/replay-v0", task=TASK, action_dim=4, progress=False)

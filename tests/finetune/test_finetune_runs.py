@@ -55,7 +55,7 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     # resume: a fresh agent loads exactly the saved weights; the run continues from 200, not from 0
     cfg = load_config("configs/finetune/demo.yaml", dict(hidden=24, units=32, logdir=str(logdir)))
     agent = build_agent(cfg, 1, export_dir, torch.device("cpu"))
-    assert load_checkpoint(logdir / CHECKPOINT, agent, cfg, export_fingerprint(export_dir))["env_step"] == 200
+    assert load_checkpoint(logdir / CHECKPOINT, agent, cfg, {"export_sha256": export_fingerprint(export_dir)})["env_step"] == 200
     assert all(torch.equal(agent.trainable_state_dict()[k], v) for k, v in first["agent"].items())
 
     capsys.readouterr()
@@ -151,7 +151,7 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
 def test_a_checkpoint_that_cannot_be_written_keeps_the_one_before(tiny_config, tmp_path, monkeypatch):
     cfg = tiny_config(agent="scratch", logdir=str(tmp_path))
     agent = build_agent(cfg, 1, None, torch.device("cpu"))
-    save_checkpoint(tmp_path / CHECKPOINT, agent, cfg, {"env_step": 100}, "")
+    save_checkpoint(tmp_path / CHECKPOINT, agent, cfg, {"env_step": 100}, {"export_sha256": ""})
     before = (tmp_path / CHECKPOINT).read_bytes()
 
     def full_disk(state, path):  # what torch's zip writer says when the disk fills halfway through
@@ -161,7 +161,7 @@ def test_a_checkpoint_that_cannot_be_written_keeps_the_one_before(tiny_config, t
     monkeypatch.setattr(torch, "save", full_disk)
     with pytest.raises(FinetuneError, match=r"checkpoint.pt could not be written \(\[enforce fail .*; a full disk or "
                                             r"quota\?\); what was written before is kept"):
-        save_checkpoint(tmp_path / CHECKPOINT, agent, cfg, {"env_step": 200}, "")
+        save_checkpoint(tmp_path / CHECKPOINT, agent, cfg, {"env_step": 200}, {"export_sha256": ""})
     assert (tmp_path / CHECKPOINT).read_bytes() == before and not list(tmp_path.glob("*.tmp"))
 
 

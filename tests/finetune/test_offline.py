@@ -4,6 +4,7 @@ from __future__ import annotations
 
 
 import math
+import shutil
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,7 +16,8 @@ from finetune.config import FinetuneError
 from finetune.offline import OfflineAgent, train_offline
 from finetune.penalty import PenalisedReward, uncertainty
 from model.losses import disagreement
-from finetune.run_dir import BEST, CHECKPOINT, load_trained
+from finetune.datasets.minari_io import dataset_path
+from finetune.run_dir import BEST, CHECKPOINT, export_fingerprint, load_trained, run_fingerprint
 from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 
 KINDS = ("loglik_std", "max_std", "mean_disagreement")
@@ -133,6 +135,20 @@ def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir,
     with pytest.raises(FinetuneError, match="dataset='test/two-episodes-v0'"):  # a run directory of another dataset
         train_offline(offline_config(tiny_config, tmp_path / "whole", 6, dataset="test/other-v0"), export_dir,
                       progress=False)
+    shutil.rmtree(dataset_path(two_episodes))  # the same ID collected again: other episodes
+    minari_dataset(two_episodes, random_episodes(2, 12, 4, seed=7), "metaworld_drawer_close")
+    with pytest.raises(FinetuneError, match="another version of --dataset test/two-episodes-v0"):
+        train_offline(offline_config(tiny_config, tmp_path / "whole", 6), export_dir, progress=False)
+    assert torch.load(tmp_path / "whole" / CHECKPOINT, weights_only=True)["counters"] == first["counters"]
+
+
+def test_a_runs_fingerprint_names_its_export_and_the_dataset_it_learns_from(export_dir, tiny_config, tmp_path,
+                                                                           two_episodes):
+    offline = run_fingerprint(offline_config(tiny_config, tmp_path, 2), export_dir)
+    assert offline["export_sha256"] == export_fingerprint(export_dir) and len(offline["dataset_sha256"]) == 64
+    imitation = tiny_config(paradigm="imitation", task="metaworld_drawer_close", demos=two_episodes)
+    assert run_fingerprint(imitation, None) == offline | {"export_sha256": ""}  # a scratch agent: no export
+    assert run_fingerprint(tiny_config(), export_dir) == {"export_sha256": export_fingerprint(export_dir)}
 
 
 def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_episodes,
