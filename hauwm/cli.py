@@ -70,35 +70,35 @@ def memory_ran_out(stage: str, err: BaseException) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if not argv or argv[0] in ("-h", "--help"):
-        print(usage())
-        return 0
-    if argv[0] not in STAGES:
-        print(f"hauwm: unknown stage {argv[0]!r}\n\n{usage()}", file=sys.stderr)
+    stage = argv[0] if argv else "--help"
+    if stage not in STAGES and stage not in ("-h", "--help"):
+        print(f"hauwm: unknown stage {stage!r}\n\n{usage()}", file=sys.stderr)
         return 2
     try:
-        module = importlib.import_module(STAGES[argv[0]][0])
         try:
-            return module.main(argv[1:]) or 0
+            if stage not in STAGES:
+                print(usage())
+                return 0
+            return importlib.import_module(STAGES[stage][0]).main(argv[1:]) or 0
         finally:
             sys.stdout.flush()  # a reader that went away (`hauwm datasets inspect ID | head`) shows here, not at exit
     except KeyboardInterrupt:  # each stage reports an interrupted run itself; this is Ctrl-C while starting up
-        print(f"\nhauwm {argv[0]}: interrupted", file=sys.stderr)
+        print(f"\nhauwm {stage}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # as a command killed by SIGPIPE ends, without a traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush goes nowhere
         return 128 + signal.SIGPIPE
     except OSError as err:  # a path a stage could not make, read or write: one line naming it, not a traceback
         if err.errno == errno.ENOMEM:  # a fork or mmap the host had no memory for
-            return memory_ran_out(argv[0], err)
+            return memory_ran_out(stage, err)
         if err.filename is None and err.errno not in FULL:  # not about a path (a socket, a library's own failure)
             raise
-        print(f"hauwm {argv[0]}: error: {path_problem(err)}", file=sys.stderr)
+        print(f"hauwm {stage}: error: {path_problem(err)}", file=sys.stderr)
         return 2
     except (MemoryError, RuntimeError) as err:
         if not out_of_memory(err):
             raise
-        return memory_ran_out(argv[0], err)
+        return memory_ran_out(stage, err)
 
 
 if __name__ == "__main__":

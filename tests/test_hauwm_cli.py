@@ -30,14 +30,15 @@ def test_ctrl_c_while_a_stage_starts_is_one_line(monkeypatch, capsys):
     assert capsys.readouterr().err.strip() == "hauwm pretrain: interrupted"
 
 
-def test_output_piped_into_a_reader_that_has_gone_ends_quietly(tmp_path):
+@pytest.mark.parametrize("args", [["datasets", "list"], ["--help"]])
+def test_output_piped_into_a_reader_that_has_gone_ends_quietly(tmp_path, args):
     """`hauwm … | head`: once head has exited, the next write finds the pipe closed; like any Unix tool the
-    command ends (rc 141, as if killed by SIGPIPE) without a traceback."""
+    command ends (rc 141, as if killed by SIGPIPE) without a traceback. (`python -m hauwm` is the command.)"""
     read_end, write_end = os.pipe()
     os.close(read_end)  # the reader is gone before the command writes anything
-    result = subprocess.run([sys.executable, "-c", "import sys; from hauwm.cli import main; sys.exit(main())",
-                             "datasets", "list"], stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=120,
-                            env={**os.environ, "MINARI_DATASETS_PATH": str(tmp_path)})  # prints one line: none there
+    result = subprocess.run([sys.executable, "-m", "hauwm", *args], stdout=write_end, stderr=subprocess.PIPE,
+                            text=True, timeout=120,
+                            env={**os.environ, "MINARI_DATASETS_PATH": str(tmp_path)})  # list prints one line: none there
     os.close(write_end)
     assert result.returncode == 141 and result.stderr == ""
 
