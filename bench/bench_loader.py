@@ -9,7 +9,9 @@ batches (a small dataset, or many GPUs: issue 12 had 7 steps an epoch) with `mak
 workers and with a DataLoader that starts its workers every epoch (the loader before issue 12). Reports
 wall-clock rates and rates per CPU second (CPU time of the process and its workers, counted once the
 workers have exited), which stay meaningful on a machine shared with other jobs. Also what receiving one
-batch from a worker costs the training process's main thread (on a GPU, the thread that pins the batches).
+batch from a worker costs the training process's main thread (on a GPU, the thread that pins the batches):
+the hand-over (what crosses from the worker: a slot's place, data_pipeline/batch_slots.py) and the copy out of
+the slot (on a GPU, the copy into pinned memory that pinning makes in any case).
 
     python bench/bench_loader.py [--shards DIR | --encoding jpeg|raw] [--seq-len 16] [--batch-size 32]
                                  [--batches 150] [--epochs 40] [--epoch-batches 4]
@@ -36,6 +38,7 @@ from torch.utils.data import DataLoader  # noqa: E402
 
 from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.build import BuildConfig, build  # noqa: E402
+from data_pipeline.batch_slots import SlotBatch  # noqa: E402
 from data_pipeline.loader import SequenceDataset, _init_worker, make_dataloader, shard_set  # noqa: E402
 from data_pipeline.sample_data import make_sample_data  # noqa: E402
 from data_pipeline.shard_format import read_manifest  # noqa: E402
@@ -67,17 +70,21 @@ def restarting_workers(dataset: SequenceDataset) -> DataLoader:
                       worker_init_fn=functools.partial(_init_worker, "normal"))
 
 
-def receive_cost(dataset: SequenceDataset, batches: int) -> float:
+def receive_cost(dataset: SequenceDataset, batches: int) -> tuple[float, float]:
     """The training process's own CPU time (its main thread) to take one batch from a worker → median ms over
-    `batches`: each `next()` comes after a pause long enough for a worker to have the batch ready, so the time is
-    the hand-over (unpickling, one file descriptor per shared-memory region), not the waiting."""
-    loader, times = iter(make_dataloader(dataset)), []
+    `batches` of (the hand-over, the copy out of its slot): each `next()` comes after a pause long enough for a
+    worker to have the batch ready, so the time is the hand-over, not the waiting."""
+    items, hand_over, copy_out = DataLoader.__iter__(make_dataloader(dataset)), [], []
     for _ in range(batches):
         time.sleep(0.1)
         started = time.thread_time()
-        next(loader)
-        times.append(time.thread_time() - started)
-    return 1000 * statistics.median(times)
+        item = next(items)
+        received = time.thread_time()
+        if isinstance(item, SlotBatch):
+            item.take()
+        hand_over.append(received - started)
+        copy_out.append(time.thread_time() - received)
+    return 1000 * statistics.median(hand_over), 1000 * statistics.median(copy_out)
 
 
 def report(label: str, seconds: float, cpu: float, sequences: int, seq_len: int) -> None:
@@ -117,7 +124,9 @@ def main() -> None:
         timing = time_epochs(dataset, (lambda d: d) if workers == 0 else make_dataloader)
         report("main process" if workers == 0 else f"DataLoader, {workers} workers", *timing, args.seq_len)
     dataset = SequenceDataset(shard_set(shards, "train"), num_workers=2, batches_per_worker=21, **settings)
-    print(f"receiving a batch from a worker: {receive_cost(dataset, 40):.2f} ms of the main thread's CPU (median of 40)")
+    hand_over, copy_out = receive_cost(dataset, 40)
+    print(f"receiving a batch from a worker: {hand_over + copy_out:.2f} ms of the main thread's CPU (median of 40: "
+          f"hand-over {hand_over:.2f} ms, copy out of the slot {copy_out:.2f} ms)")
     for label, make_batches in (("workers started once", make_dataloader),
                                 ("workers restarted every epoch", restarting_workers)):
         dataset = SequenceDataset(shard_set(shards, "train"), num_workers=2,

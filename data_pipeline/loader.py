@@ -32,13 +32,15 @@ The stages of one worker (the per-sequence cost at L = 16 is in bench/README.md)
 
     shard URLs → `shard_samples` (tar → samples) → shuffle buffer within the pass
       → `to_sequence` (JSON, L frame indices; too-short clips dropped) → groups of batch_size
-      → `collate` (only the L sampled frames of each clip decoded, straight into the batch array)
+      → `collate` (only the L sampled frames of each clip decoded, straight into the batch array, which in a
+        DataLoader worker is its next shared-memory slot: batch_slots.py)
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import multiprocessing
 import multiprocessing.connection
 import os
 import random
@@ -50,6 +52,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from itertools import islice
+from multiprocessing.context import BaseContext
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +61,7 @@ import webdataset as wds
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from webdataset.utils import pytorch_worker_info
 
+from .batch_slots import BatchSlots, SlotBatch, batch_views, block_bytes, shared_memory_free
 from .sampling import gaps_of, sample_indices
 from .shard_format import MANIFEST_FILE, decode_frames, frames_member, read_manifest, read_samples
 
@@ -81,10 +85,12 @@ class LoaderError(ValueError):
 
 @dataclass(frozen=True)
 class ShardSet:
-    """The shards of one split: their URLs and, per shard, how many clips have each frame count."""
+    """The shards of one split: their URLs and, per shard, how many clips have each frame count; their frames'
+    height and width (the build's --size)."""
     split: str
     urls: list[str]
     frame_counts: list[dict[int, int]]
+    frame_size: int = 64
 
     def eligible(self, seq_len: int) -> list[int]:
         """Per shard, the number of clips with at least `seq_len` frames (the others are skipped)."""
@@ -110,7 +116,8 @@ def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -
     shards = manifest["splits"][split]["shards"]
     urls = [shard_url.format(name=s["name"]) if shard_url else str(Path(directory) / s["name"]) for s in shards]
     counts = [{int(frames): n for frames, n in s["frame_counts"].items()} for s in shards]
-    return ShardSet(split, urls, counts)
+    size = manifest["settings"]["size"]  # sizes the workers' batch slots; a batch larger than a slot goes without
+    return ShardSet(split, urls, counts, size if isinstance(size, int) and size > 0 else ShardSet.frame_size)
 
 
 def shard_samples(sources: Iterator[dict]) -> Iterator[dict]:
@@ -151,35 +158,23 @@ def decode_sequence(sequence: dict, indices, out: np.ndarray | None = None) -> n
                           f"({type(error).__name__}: {error}); {VERIFY_HINT}") from error
 
 
-def collate(sequences: list[dict]) -> dict:
-    """Sequences → the batch of docs/architecture.md §2, decoding only the L sampled frames of each clip.
-
-    Every tensor of the batch is a view of one uint8 block: a batch crosses from a DataLoader worker to the
-    training process as one shared-memory region (each region costs the receiving thread a round trip to the
-    worker, a file descriptor over a socket, while the training step waits for the GIL)."""
+def collate(sequences: list[dict], block: torch.Tensor | None = None) -> dict:
+    """Sequences → the batch of docs/architecture.md §2, decoding only the L sampled frames of each clip, into
+    `block` (uint8; a new one if None or too small): every tensor is a view of one block (batch_slots.py)."""
     height, width = decode_sequence(sequences[0], [0]).shape[1:3]
-    indices = np.stack([s["indices"] for s in sequences])  # [B, L]
-    batch, length = indices.shape
-    frame_bytes = batch * length * 3 * height * width
-    integers = 2 * batch * length + 2 * batch  # gaps, indices [B, L]; num_frames, label [B]
-    start = -(-frame_bytes // 8) * 8  # the int64 fields start 8-byte aligned
-    block = torch.empty(start + 8 * integers, dtype=torch.uint8)
-    frames = block[:frame_bytes].view(batch, length, 3, height, width)
-    for slot, sequence in zip(frames.numpy(), sequences):  # slot: [L, 3, H, W]
+    shape = len(sequences), len(sequences[0]["indices"]), height, width
+    _, size = block_bytes(*shape)
+    if block is None or len(block) < size:
+        block = torch.empty(size, dtype=torch.uint8)
+    batch = batch_views(block, *shape)
+    for slot, sequence in zip(batch["frames"].numpy(), sequences):  # slot: [L, 3, H, W]
         # the decoded [L, H, W, 3] frames are written transposed straight into their slot (no second pass)
         decode_sequence(sequence, sequence["indices"], out=slot.transpose(0, 2, 3, 1))
-    fields = block[start:].view(torch.int64)
-    np.concatenate([gaps_of(indices).ravel(), indices.ravel(), [s["num_frames"] for s in sequences],
-                    [s["label"] for s in sequences]], out=fields.numpy())
-    gaps, frame_indices, num_frames, label = fields.split([batch * length, batch * length, batch, batch])
-    return {
-        "frames": frames,  # uint8 [B, L, 3, H, W]
-        "gaps": gaps.view(batch, length),  # int64 [B, L], gaps[:, 0] == 0
-        "indices": frame_indices.view(batch, length),  # int64 [B, L]
-        "num_frames": num_frames,  # int64 [B]
-        "label": label,  # int64 [B]
-        "id": [s["id"] for s in sequences],
-    }
+    indices = np.stack([s["indices"] for s in sequences])  # [B, L]
+    batch["gaps"][:], batch["indices"][:] = torch.from_numpy(gaps_of(indices)), torch.from_numpy(indices)
+    batch["num_frames"][:] = torch.tensor([s["num_frames"] for s in sequences])
+    batch["label"][:] = torch.tensor([s["label"] for s in sequences])
+    return {**batch, "id": [s["id"] for s in sequences]}  # frames uint8 [B, L, 3, H, W]; the rest int64
 
 
 def usable_shards(shards: ShardSet, seq_len: int, world_size: int, workers: int) -> dict[str, int]:
@@ -227,6 +222,8 @@ class SequenceDataset(IterableDataset):
         self.batch_size, self.seq_len, self.k_max = batch_size, seq_len, k_max
         self.shuffle, self.shuffle_buffer, self.seed, self.continuous = shuffle, shuffle_buffer, seed, continuous
         self.split = shards.split  # for error messages: a fit reads train and validation shards
+        self.frame_size = shards.frame_size
+        self._slots: BatchSlots | None = None  # where workers place their batches (share_slots)
         # shared with the DataLoader workers (created before they start): [epoch, batches of it already trained
         # on per rank (a resumed run)], written by the main process, read by every `__iter__`
         self._position = torch.zeros(2, dtype=torch.int64).share_memory_()
@@ -312,13 +309,47 @@ class SequenceDataset(IterableDataset):
             epoch, rank, stream, skipped if epoch == first_epoch else 0, process_worker))
         return self._naming_the_shard(batches, process_worker)
 
-    def _epoch_batches(self, epoch: int, rank: int, stream: int, skipped: int, worker: int) -> Iterator[dict]:
+    def _epoch_batches(self, epoch: int, rank: int, stream: int, skipped: int,
+                       worker: int) -> Iterator[dict | SlotBatch]:
         """Stream `stream`'s batches of `epoch`, after the first `skipped`, read by DataLoader worker `worker`."""
         rng = np.random.default_rng([self.seed, epoch, rank, stream])
         urls = self.stream_urls(stream, epoch)
         remaining = islice(self._passes(urls, rng, worker), skipped * self.batch_size, None)
-        batches = wds.batched(self.batch_size, collation_fn=collate, partial=False)(remaining)
-        return islice(batches, max(0, self.batches_per_worker - skipped))
+        groups = wds.batched(self.batch_size, collation_fn=None, partial=False)(remaining)
+        return map(self._handed_over, islice(groups, max(0, self.batches_per_worker - skipped)))
+
+    def share_slots(self, per_worker: int, context: BaseContext) -> None:
+        """Give each DataLoader worker `per_worker` shared-memory slots to place its batches in (batch_slots.py);
+        before the workers start (with `context`), once (the loaders of one dataset share them: each slot has
+        its semaphore). A LoaderError if the shared memory has no room for them."""
+        if self._slots is not None:
+            return
+        _, slot_bytes = block_bytes(self.batch_size, self.seq_len, self.frame_size, self.frame_size)
+        needed, room = self.workers * per_worker * slot_bytes, shared_memory_free()
+        if room is not None and needed > room:
+            raise LoaderError(f"the {self.split} loader's {self.workers} workers need {needed / 2**20:.0f} MiB of "
+                              f"shared memory to hand batches over and /dev/shm has {room / 2**20:.0f} MiB free: in "
+                              "Docker run with --shm-size 8g (or --ipc=host), or lower --data.num_workers or "
+                              "--data.batch_size")
+        self._slots = BatchSlots(self.workers, per_worker, slot_bytes, context)
+
+    def _handed_over(self, sequences: list[dict]) -> dict | SlotBatch:
+        """In a DataLoader worker with slots, the batch written into the worker's next slot, to travel as a
+        SlotBatch; otherwise (no slot free, a batch larger than a slot, the main process) the batch itself."""
+        info = get_worker_info()
+        if self._slots is None or info is None or (place := self._slots.place(info.id)) is None:
+            return collate(sequences)
+        slot, block = place
+        try:
+            batch = collate(sequences, block)
+        except BaseException:
+            self._slots.free[info.id][slot].release()
+            raise
+        if batch["frames"].data_ptr() != block.data_ptr():  # larger than the slot: collated elsewhere
+            self._slots.free[info.id][slot].release()
+            return batch
+        size, length, _, height, width = batch["frames"].shape
+        return SlotBatch(self._slots.key, info.id, slot, (size, length, height, width), batch["id"])
 
     def _naming_the_shard(self, batches: Iterator[dict], worker: int) -> Iterator[dict | LoaderError]:
         """`batches`, with an error turned into a `LoaderError` naming the worker and the shard it was reading.
@@ -438,12 +469,13 @@ class ResumableDataLoader(DataLoader):
             _defer_worker_deaths()
         return batches
 
-    def _next_batch(self, batches: Iterator[dict | LoaderError]) -> dict | None:
-        """The next batch, None at the end; an error inside a worker, handed over as its last item, raised."""
+    def _next_batch(self, batches: Iterator[dict | SlotBatch | LoaderError]) -> dict | None:
+        """The next batch, None at the end (a worker's slot copied out and freed, where pinning did not already);
+        an error inside a worker, handed over as its last item, raised."""
         batch = self._fetch(lambda: next(batches, None))
         if isinstance(batch, LoaderError):
             raise batch
-        return batch
+        return batch.take() if isinstance(batch, SlotBatch) else batch
 
     def _raising_worker_errors(self, batches: Iterator[dict | LoaderError]) -> Iterator[dict]:
         while (batch := self._next_batch(batches)) is not None:
@@ -528,16 +560,23 @@ def _death_cause(exitcode: int | None) -> str:
     return DEATH_CAUSES.get(-exitcode, f"killed by signal {-exitcode} ({signal.strsignal(-exitcode)})")
 
 
+PREFETCH = 2  # batches each worker has in flight (torch's default prefetch_factor)
+
+
 def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0,
                     worker_priority: str = "normal") -> ResumableDataLoader:
     """Batches come collated from the dataset, so `batch_size=None`. With workers, they start once and stay for
     the whole run (`persistent_workers`; each epoch's iterator reads the position from shared memory), a
-    worker that gives no batch for `timeout` seconds is reported as stalled, and `worker_priority` is their
-    scheduling class (`check_worker_priority`)."""
+    worker that gives no batch for `timeout` seconds is reported as stalled, `worker_priority` is their
+    scheduling class (`check_worker_priority`), and each places its batches in PREFETCH + 1 shared-memory slots
+    (batch_slots.py: one more than it has in flight, so the next is free by the time it is asked for)."""
     check_worker_priority(worker_priority)
     workers = dataset.num_workers > 0
     loader = ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
                                  worker_init_fn=partial(_init_worker, worker_priority), persistent_workers=workers,
-                                 timeout=timeout if workers else 0, pin_memory=torch.cuda.is_available())
+                                 timeout=timeout if workers else 0, pin_memory=torch.cuda.is_available(),
+                                 prefetch_factor=PREFETCH if workers else None)
     loader.worker_priority = worker_priority
+    if workers:  # the context torch starts the workers with (its default: the platform's)
+        dataset.share_slots(PREFETCH + 1, loader.multiprocessing_context or multiprocessing.get_context())
     return loader

@@ -182,6 +182,14 @@ def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, 
     assert not (tmp_path / "checkpoints").exists()
 
 
+def test_shared_memory_too_small_for_the_loader_is_refused_in_one_line(built_shards, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("data_pipeline.loader.shared_memory_free", lambda: 2**19)
+    assert fit(built_shards, tmp_path, "--data.num_workers", "1", "--trainer.max_steps", "1") == 2
+    err = capsys.readouterr().err
+    assert "/dev/shm has 0 MiB free: in Docker run with --shm-size" in err and "Traceback" not in err
+    assert not (tmp_path / "checkpoints").exists()
+
+
 def test_no_shard_directory_and_an_optimizer_flag_are_refused_in_one_line(capsys):
     assert main(["fit", "--config", str(TINY_CONFIG)]) == 2  # every config leaves data.shards to the command line
     err = capsys.readouterr().err
