@@ -25,7 +25,6 @@ from multiprocessing.context import BaseContext
 
 import torch
 
-INT_FIELDS = ("gaps", "indices", "num_frames", "label")  # int64: [B, L], [B, L], [B], [B]
 SLOT_WAIT = 1.0  # seconds a worker waits for its slot before sending the batch the ordinary way
 SHARED_MEMORY = "/dev/shm"
 _ALL_SLOTS: weakref.WeakValueDictionary[str, BatchSlots] = weakref.WeakValueDictionary()  # in the training process
@@ -57,18 +56,21 @@ class BatchSlots:
 
     def __init__(self, workers: int, per_worker: int, slot_bytes: int, context: BaseContext):
         self.buffer = torch.empty(workers, per_worker, slot_bytes, dtype=torch.uint8).share_memory_()
-        self.free = [[context.Semaphore(1) for _ in range(per_worker)] for _ in range(workers)]
+        self.semaphores = [[context.Semaphore(1) for _ in range(per_worker)] for _ in range(workers)]
         self.key = uuid.uuid4().hex
-        self._sent = 0  # batches this process (a worker) has placed in its slots
+        self._placed = 0  # batches this process (a worker) has placed in its slots
         _ALL_SLOTS[self.key] = self
 
     def place(self, worker: int) -> tuple[int, torch.Tensor] | None:
         """A worker's next slot, (its index, its bytes) once free; None if it stays taken for SLOT_WAIT seconds."""
-        slot = self._sent % len(self.free[worker])
-        if not self.free[worker][slot].acquire(timeout=SLOT_WAIT):
+        slot = self._placed % len(self.semaphores[worker])
+        if not self.semaphores[worker][slot].acquire(timeout=SLOT_WAIT):
             return None
-        self._sent += 1
+        self._placed += 1
         return slot, self.buffer[worker, slot]
+
+    def vacate(self, worker: int, slot: int) -> None:
+        self.semaphores[worker][slot].release()
 
 
 def shared_memory_free() -> int | None:
@@ -98,18 +100,18 @@ class SlotBatch:
         _, size = block_bytes(*self.shape)
         block = slots.buffer[self.worker, self.slot, :size]
         copy = block.pin_memory() if pin else block.clone()
-        self.free()
+        self.release()
         return {**batch_views(copy, *self.shape), "id": self.ids}
 
     def pin_memory(self) -> dict:
         return self.take(pin=True)
 
-    def free(self) -> None:
+    def release(self) -> None:
         if self._holds_slot:
             self._holds_slot = False
             if (slots := _ALL_SLOTS.get(self.key)) is not None:
-                slots.free[self.worker][self.slot].release()
+                slots.vacate(self.worker, self.slot)
 
     def __del__(self) -> None:
         with contextlib.suppress(Exception):  # at interpreter exit the semaphores may be gone already
-            self.free()
+            self.release()

@@ -343,10 +343,10 @@ class SequenceDataset(IterableDataset):
         try:
             batch = collate(sequences, block)
         except BaseException:
-            self._slots.free[info.id][slot].release()
+            self._slots.vacate(info.id, slot)
             raise
         if batch["frames"].data_ptr() != block.data_ptr():  # larger than the slot: collated elsewhere
-            self._slots.free[info.id][slot].release()
+            self._slots.vacate(info.id, slot)
             return batch
         size, length, _, height, width = batch["frames"].shape
         return SlotBatch(self._slots.key, info.id, slot, (size, length, height, width), batch["id"])
