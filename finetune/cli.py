@@ -115,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
     from finetune.run_dir import CHECKPOINT
+    from finetune.termination import Terminated
     from model.config import ConfigError
 
     argv = sys.argv[1:] if argv is None else argv
@@ -123,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     subcommand = argv[0] if argv and argv[0] in SUBCOMMANDS else None
     args = parser(subcommand).parse_args(argv[1:] if subcommand else argv)
     paradigm = SUBCOMMANDS[subcommand][0] if subcommand else "online"
+    stopped, status = "", 0
     try:
         overrides = dict(parse_override(text) for text in args.set)
         for key in ("steps", "logdir", "seed", "device", "dataset", "demos"):
@@ -146,14 +148,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # said below, once the run's frames (and its progress bar) are gone
-        result = None
-    if result is None:
+        stopped, status = "interrupted", 130
+    except Terminated as where:  # SIGTERM: the run wrote its checkpoint of this moment (finetune/termination.py)
+        stopped, status = f"terminated (SIGTERM) at {where}", 143
+    if stopped:
         checkpoint = Path(cfg.logdir) / CHECKPOINT
         written = time.strftime("%H:%M:%S", time.localtime(checkpoint.stat().st_mtime)) if checkpoint.is_file() else ""
         kept = (f"its last checkpoint, {checkpoint} (written {written}), is kept: the same command goes on from there"
                 if written else "no checkpoint was written yet: the same command starts it again")
-        print(f"{parser(subcommand).prog}: interrupted; {kept}", file=sys.stderr)
-        return 130
+        print(f"{parser(subcommand).prog}: {stopped}; {kept}", file=sys.stderr)
+        return status
     kind = cfg.agent if paradigm == "online" else f"{cfg.agent}, {paradigm}"
     unit, _ = step_unit(paradigm)
     if result:

@@ -27,6 +27,7 @@ from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
 from finetune.run_dir import CHECKPOINT, exclusive, save_checkpoint
+from finetune.termination import Terminated, terminable
 from finetune.train import (LogWindow, close_window, load_dataset, next_multiple, scheduled_evaluation, start_run,
                             task_env)
 from finetune.world_model import Latent
@@ -74,22 +75,25 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
     bar = tqdm(total=cfg.steps, initial=counters["updates"], unit=" update", desc=f"offline {cfg.task}",
                disable=not progress, dynamic_ncols=True)
     window = LogWindow(counters["updates"])
-    while counters["updates"] < cfg.steps:
-        window.metrics.append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
-        counters["updates"] += 1
-        bar.update(1)
-        updates = counters["updates"]
-        if updates >= counters["next_log"] or updates >= cfg.steps:
-            metrics = close_window(window, updates)
-            logger.write("train", updates, metrics)
-            bar.set_postfix(model_loss=f"{metrics['model_loss']:.1f}", u=f"{metrics['penalty_u_imagined']:.3g}")
-            counters["next_log"] = next_multiple(updates, cfg.log_every)
-        if updates >= counters["next_eval"] or updates >= cfg.steps:
-            last_eval = scheduled_evaluation(agent, eval_env, cfg, cfg.seed + 10_000 + updates, counters, fingerprint,
-                                             logger, window, bar, progress)
-        if updates >= counters["next_checkpoint"] or updates >= cfg.steps:
-            counters["next_checkpoint"] = next_multiple(updates, cfg.checkpoint_every)
-            save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
+    with terminable() as stop:
+        while counters["updates"] < cfg.steps:
+            window.metrics.append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
+            counters["updates"] += 1
+            bar.update(1)
+            updates = counters["updates"]
+            if updates >= counters["next_log"] or updates >= cfg.steps:
+                metrics = close_window(window, updates)
+                logger.write("train", updates, metrics)
+                bar.set_postfix(model_loss=f"{metrics['model_loss']:.1f}", u=f"{metrics['penalty_u_imagined']:.3g}")
+                counters["next_log"] = next_multiple(updates, cfg.log_every)
+            if updates >= counters["next_eval"] or updates >= cfg.steps:
+                last_eval = scheduled_evaluation(agent, eval_env, cfg, cfg.seed + 10_000 + updates, counters,
+                                                 fingerprint, logger, window, bar, progress)
+            if updates >= counters["next_checkpoint"] or updates >= cfg.steps or stop.requested:
+                counters["next_checkpoint"] = next_multiple(updates, cfg.checkpoint_every)
+                save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
+                if stop.requested:  # SIGTERM: stopped with the checkpoint of this update (finetune/termination.py)
+                    raise Terminated(f"update {updates}")
     bar.close()
     logger.close()
     return last_eval

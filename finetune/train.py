@@ -31,6 +31,7 @@ from finetune.logger import Logger
 from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
 from finetune.run_dir import CHECKPOINT, Fingerprint, exclusive, keep_best, resume, run_fingerprint, save_checkpoint
+from finetune.termination import StopRequest, Terminated, terminable
 
 ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this (env 0: the seed a single env gets)
 HELD_OUT_SEED = 1_000_000_000  # `hauwm finetune evaluate` plays from the run's seed + this: an env seed the run's
@@ -309,19 +310,23 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
         envs = make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)
     except EnvWorkerError as error:
         raise FinetuneError(f"task {cfg.task!r}: {error}") from None
-    with closing_envs(envs):
+    with closing_envs(envs), terminable() as stop:
         try:
             return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, logdir / CHECKPOINT,
-                        fingerprint, progress, hooks.reseed)
+                        fingerprint, progress, hooks.reseed, stop)
         except EnvWorkerError as error:  # a worker died mid-run
+            if stop.requested or error.by_sigterm:  # the job's SIGTERM, which ended the workers first: as in loop()
+                save_checkpoint(logdir / CHECKPOINT, agent, cfg, counters, fingerprint, rng)
+                raise Terminated(f"env step {int(counters['env_step'])}") from None
             raise FinetuneError(f"task {cfg.task!r}: {error}; the same command goes on from the run's last "
                                 "checkpoint.pt, if one was written") from None
 
 
 def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, replay: Replay, rng: np.random.Generator,
          logger: Logger, counters: dict[str, float], checkpoint: Path, fingerprint: Fingerprint, progress: bool,
-         reseed: bool) -> dict[str, float]:
-    """Act in `envs` (a gymnasium vector env), store finished episodes, update, log, evaluate, checkpoint.
+         reseed: bool, stop: StopRequest) -> dict[str, float]:
+    """Act in `envs` (a gymnasium vector env), store finished episodes, update, log, evaluate, checkpoint; after
+    SIGTERM (`stop`), checkpoint and raise Terminated (finetune/termination.py).
 
     With several envs in worker processes, the updates due run while the workers step and render; with
     one env in this process, the loop runs one env step at a time, as a single env always did. With
@@ -380,7 +385,7 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
             bar.set_postfix(updates_per_s=f"{metrics['updates_per_s']:.2f}", model_loss=f"{metrics['model_loss']:.1f}")
             counters["next_log"] = next_multiple(step, cfg.log_every)
         eval_due = step >= counters["next_eval"] or step >= cfg.steps
-        checkpoint_due = step >= counters["next_checkpoint"] or step >= cfg.steps
+        checkpoint_due = step >= counters["next_checkpoint"] or step >= cfg.steps or stop.requested
         if eval_due or checkpoint_due:
             train_due(cfg, agent, replay, counters, window)  # they see every update due so far, also with parallel envs
         if eval_due:
@@ -390,6 +395,8 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
         if checkpoint_due:
             counters["next_checkpoint"] = next_multiple(step, cfg.checkpoint_every)
             save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
+            if stop.requested:
+                raise Terminated(f"env step {step}")
     bar.close()
     logger.close()
     return last_eval

@@ -49,7 +49,11 @@ START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_met
 
 
 class EnvWorkerError(RuntimeError):
-    """An env worker process could not build its env, or ended while it ran one; the message says which and why."""
+    """An env worker process could not build its env, or ended while it ran one; the message says which and why.
+    `by_sigterm`: every worker that died was ended by SIGTERM (SLURM's scancel or time limit signal every process
+    of a job: the learner's own SIGTERM may come a moment later)."""
+
+    by_sigterm = False
 
 
 # how an env worker that died can have been killed, and what to do about it
@@ -103,8 +107,11 @@ class WorkerEnvs(AsyncVectorEnv):
                 if process.exitcode is not None:
                     dead.append(f"env worker {index} of {self.name} (seed {self.seeds[index]}, pid {process.pid}) "
                                 f"died: {death_cause(process.exitcode)}")
-            raise EnvWorkerError("; ".join(dead) or f"an env worker of {self.name} stopped answering "
-                                 f"({type(error).__name__} from its pipe)") from None
+            failure = EnvWorkerError("; ".join(dead) or f"an env worker of {self.name} stopped answering "
+                                     f"({type(error).__name__} from its pipe)")
+            failure.by_sigterm = bool(dead) and all(process.exitcode in (None, -signal.SIGTERM)
+                                                    for process in self.processes)
+            raise failure from None
 
 
 def make_vector_env(name: str, seeds: list[int], pin: bool = True, **kwargs) -> VectorEnv:

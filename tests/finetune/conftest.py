@@ -78,3 +78,9 @@ def minari_dataset(tmp_path, monkeypatch):
         return dataset_id
 
     return write
+
+
+@pytest.fixture
+def two_episodes(minari_dataset, random_episodes):
+    """A Minari dataset of 2 random drawer-close episodes (test/two-episodes-v0), for offline runs."""
+    return minari_dataset("test/two-episodes-v0", random_episodes(2, 12, 4), "metaworld_drawer_close")

@@ -90,11 +90,6 @@ def offline_config(tiny_config, logdir, steps, **extra):
     return tiny_config(**values)
 
 
-@pytest.fixture
-def two_episodes(minari_dataset, random_episodes):
-    return minari_dataset("test/two-episodes-v0", random_episodes(2, 12, 4), "metaworld_drawer_close")
-
-
 def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir, tiny_config, tmp_path, two_episodes,
                                                                      minari_dataset, random_episodes):
     whole = train_offline(offline_config(tiny_config, tmp_path / "whole", 4), export_dir, progress=False)

@@ -1,0 +1,47 @@
+"""SIGTERM ends a fine-tuning run after its current iteration, with a checkpoint of that moment.
+
+SLURM (`scancel`, a job's time limit, preemption) and Kubernetes send SIGTERM to every process of a job, and
+SIGKILL some seconds later. A run of 1M env steps checkpoints every `checkpoint_every` steps; killed outright it
+would lose what it did since its last checkpoint. Inside `terminable()` the signal only sets a flag; the training
+loop reads it after each iteration (an env step and the updates due, or an update offline), writes its checkpoint
+and raises `Terminated`, which `hauwm finetune` reports in one line with exit status 143. The same command goes
+on from there (a checkpoint taken within an episode drops that episode's steps, as any other does). Env workers
+that the job's SIGTERM ended before the learner saw its own (`EnvWorkerError.by_sigterm`) stop the run the same
+way, with the checkpoint of the env steps completed (finetune/train.py `run`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
+
+
+class Terminated(Exception):
+    """The run got SIGTERM and stopped after writing its checkpoint."""
+
+
+class StopRequest:
+    """Whether SIGTERM has come since `terminable()` began."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def note(self, signum: int, frame) -> None:
+        self.requested = True
+
+
+@contextlib.contextmanager
+def terminable() -> Iterator[StopRequest]:
+    """SIGTERM sets the StopRequest's flag instead of killing the process (in the main thread: elsewhere Python
+    cannot install a handler, and the flag stays unset); the handler found before comes back afterwards."""
+    request = StopRequest()
+    if threading.current_thread() is not threading.main_thread():
+        yield request
+        return
+    before = signal.signal(signal.SIGTERM, request.note)
+    try:
+        yield request
+    finally:
+        signal.signal(signal.SIGTERM, before)

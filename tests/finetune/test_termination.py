@@ -1,0 +1,99 @@
+"""SIGTERM (SLURM's scancel, a job's time limit) ends a fine-tuning run after its current iteration with a
+checkpoint of that moment and exit status 143; the same command goes on from there, and an offline run stopped so
+ends as an unbroken one."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import pytest
+import torch
+
+import finetune.envs.vector
+import finetune.train
+from finetune.cli import main
+from finetune.offline import OfflineAgent, train_offline
+from finetune.run_dir import CHECKPOINT
+from finetune.termination import Terminated, terminable
+
+from test_finetune_runs import tiny_run_settings  # noqa: I001 (tests/finetune/test_finetune_runs.py)
+from test_offline import offline_config
+
+
+def sigterm_once(function, when):
+    """`function`, sending this process SIGTERM before the first call (counted from 1) for which `when(call, *args)`."""
+    call, sent = 0, False
+
+    def wrapped(*args, **kwargs):
+        nonlocal call, sent
+        call += 1
+        if not sent and when(call, *args):
+            sent = True
+            os.kill(os.getpid(), signal.SIGTERM)
+        return function(*args, **kwargs)
+    return wrapped
+
+
+def test_the_handler_found_before_comes_back():
+    before = signal.getsignal(signal.SIGTERM)
+    with terminable() as stop:
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.requested
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+@pytest.mark.parametrize(("who", "stopped_at"), [("learner", 64), ("workers", 60), ("everyone", 60)])
+def test_an_online_run_stops_on_sigterm_with_a_checkpoint_and_goes_on_from_it(tmp_path, capsys, monkeypatch, who,
+                                                                              stopped_at):
+    """SIGTERM while the env workers step (num_envs 2): to the learner, which sees it after this env step; to the
+    workers (SLURM signals every process of a job), which die in it, before or without the learner's own."""
+    logdir = tmp_path / "run"
+    args = ["--config", "configs/finetune/demo.yaml", "--set", "agent=scratch", "--steps", "160"]
+    args += tiny_run_settings(logdir, time_limit=20, prefill=40, eval_every=200, checkpoint_every=100,
+                              eval_episodes=1, num_envs=2)
+    made, make_vector_env = [], finetune.envs.vector.make_vector_env
+    monkeypatch.setattr(finetune.envs.vector, "make_vector_env",
+                        lambda *args, **kwargs: made.append(make_vector_env(*args, **kwargs)) or made[-1])
+    train_due, sent = finetune.train.train_due, []  # it runs while the workers step (after step_async)
+
+    def signalled(cfg, agent, replay, counters, window):
+        if counters["env_step"] == 60 and not sent:
+            sent.append(who)
+            for process in made[0].processes if who != "learner" else []:
+                os.kill(process.pid, signal.SIGTERM)
+                process.join()
+            if who != "workers":
+                os.kill(os.getpid(), signal.SIGTERM)
+        return train_due(cfg, agent, replay, counters, window)
+
+    monkeypatch.setattr(finetune.train, "train_due", signalled)
+    assert main(args) == 143
+    err = capsys.readouterr().err
+    assert f"terminated (SIGTERM) at env step {stopped_at}; its last checkpoint, {logdir / CHECKPOINT} (written " in err
+    counters = torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]
+    assert counters["env_step"] == stopped_at and counters["next_checkpoint"] == 100  # not a checkpoint_every multiple
+    monkeypatch.undo()
+    assert main(args) == 0
+    assert f"resuming {logdir / CHECKPOINT} at env step {stopped_at}" in capsys.readouterr().err
+    assert torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]["env_step"] == 160
+
+
+def test_an_offline_run_stopped_by_sigterm_and_resumed_ends_as_an_unbroken_one(export_dir, tiny_config, tmp_path,
+                                                                                two_episodes, monkeypatch):
+    whole = train_offline(offline_config(tiny_config, tmp_path / "whole", 5), export_dir, progress=False)
+    update = OfflineAgent.update
+    monkeypatch.setattr(OfflineAgent, "update", sigterm_once(update, lambda call, agent, batch: call == 3))
+    stopped = offline_config(tiny_config, tmp_path / "stopped", 5)
+    try:
+        train_offline(stopped, export_dir, progress=False)
+    except Terminated as where:
+        assert str(where) == "update 3"
+    else:
+        raise AssertionError("the run did not stop on SIGTERM")
+    assert torch.load(tmp_path / "stopped" / CHECKPOINT, weights_only=True)["counters"]["updates"] == 3
+    monkeypatch.setattr(OfflineAgent, "update", update)
+    assert train_offline(stopped, export_dir, progress=False) == whole
+    first = torch.load(tmp_path / "whole" / CHECKPOINT, weights_only=True)["agent"]
+    second = torch.load(tmp_path / "stopped" / CHECKPOINT, weights_only=True)["agent"]
+    assert all(torch.equal(value, second[key]) for key, value in first.items())
