@@ -384,11 +384,7 @@ def check_worker_priority(priority: str) -> None:
 def _init_worker(priority: str, _: int) -> None:
     import cv2
 
-    # Ctrl-C (to the terminal's process group) and SIGTERM (to every process of a job: SLURM's scancel, its time
-    # limit) are the training process's to handle: it finishes the step, and a validation on these workers, then
-    # stops them
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle; it stops the workers
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
     if priority == "idle":
