@@ -133,7 +133,8 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
 
 
 def scheduled_evaluation(agent: Agent, eval_env, cfg: FinetuneConfig, seed: int | None, counters: dict[str, float],
-                         fingerprint: Fingerprint, logger: Logger, window: LogWindow, bar: tqdm, progress: bool) -> dict[str, float]:
+                         fingerprint: Fingerprint, logger: Logger, window: LogWindow, bar: tqdm,
+                         progress: bool) -> dict[str, float]:
     """A run's evaluation once its counters reach next_eval (the online and offline loops'): `evaluate`, its time
     left out of the log window's updates/s and the progress bar's rate; written to eval.csv, kept in best.pt if it is
     the best so far (`keep_best`), and the next one scheduled. Its step is the paradigm's (`step_unit`)."""
