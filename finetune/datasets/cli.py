@@ -18,7 +18,9 @@ import argparse
 import contextlib
 import math
 import re
+import signal
 import sys
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -240,6 +242,37 @@ def list_(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(sys.argv[1:] if argv is None else argv)
+    with sigterm_as_interrupt() as terminated:
+        return run_command(args, terminated)
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[list[int]]:
+    """SIGTERM (SLURM's scancel or time limit) does what Ctrl-C does: `collect` keeps the episodes finished as a
+    whole dataset, `merge` deletes its part; the list yielded gets the signal, so the exit status can say so."""
+    terminated: list[int] = []
+
+    def interrupt(signum: int, frame) -> None:
+        terminated.append(signum)
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is not threading.main_thread():
+        yield terminated
+        return
+    before = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield terminated
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
+def stopped_by(terminated: list[int]) -> tuple[str, int]:
+    """What stopped a command that raised KeyboardInterrupt, and its exit status: SIGTERM (143) or Ctrl-C (130)."""
+    return ("terminated (SIGTERM)", 143) if terminated else ("interrupted", 130)
+
+
+def run_command(args: argparse.Namespace, terminated: list[int]) -> int:
     from finetune.agent import DivergedError
     from finetune.datasets.minari_io import DatasetError, KeptOnInterrupt
     from finetune.pretrained import PretrainedError
@@ -247,7 +280,6 @@ def main(argv: list[str] | None = None) -> int:
     from finetune.config import FinetuneError
     from model.config import ConfigError
 
-    args = parser().parse_args(sys.argv[1:] if argv is None else argv)
     try:
         if args.command == "collect":
             collect(args)
@@ -264,13 +296,15 @@ def main(argv: list[str] | None = None) -> int:
     except (DatasetError, ConfigError, DivergedError, FinetuneError, PretrainedError, ReplayError) as error:
         print(f"hauwm datasets: error: {error}", file=sys.stderr)
         return 2
-    except KeptOnInterrupt as stopped:
-        print(f"hauwm datasets: interrupted; the {stopped.dataset.total_episodes} episodes finished are kept as "
+    except KeptOnInterrupt as kept:
+        stopped, status = stopped_by(terminated)
+        print(f"hauwm datasets: {stopped}; the {kept.dataset.total_episodes} episodes finished are kept as "
               f"{args.dataset_id}: collect more under another ID and `hauwm datasets merge` them", file=sys.stderr)
-        return 130
+        return status
     except KeyboardInterrupt:
-        print("hauwm datasets: interrupted (a dataset being written was deleted)", file=sys.stderr)
-        return 130
+        stopped, status = stopped_by(terminated)
+        print(f"hauwm datasets: {stopped} (a dataset being written was deleted)", file=sys.stderr)
+        return status
     return 0
 
 

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import os
 import re
+import signal
 import shutil
 import types
 
@@ -152,6 +154,30 @@ def test_collect_from_a_runs_replay_and_with_its_agent(tmp_path, tiny_config, ca
     assert main(["collect", "--policy", "random", "--best", "--task", TASK, "--episodes", "1", "--dataset-id",
                  "test/y-v0"]) == 2
     assert "--best picks which checkpoint of a run --policy agent plays" in capsys.readouterr().err
+
+
+def test_sigterm_while_collecting_keeps_the_finished_episodes_like_ctrl_c(datasets_root, monkeypatch, capsys):
+    """SLURM's scancel or time limit: the episodes collected so far stay a whole dataset (with its task), exit 143."""
+    import finetune.datasets.sources
+
+    policy_episodes = finetune.datasets.sources.policy_episodes
+
+    def terminated_after_one(env, policy, episodes):
+        for index, episode in enumerate(policy_episodes(env, policy, episodes)):
+            if index == 1:
+                os.kill(os.getpid(), signal.SIGTERM)
+            yield episode
+
+    monkeypatch.setattr(finetune.datasets.sources, "policy_episodes", terminated_after_one)
+    before = signal.getsignal(signal.SIGTERM)
+    args = ["collect", "--policy", "random", "--task", TASK, "--episodes", "3", "--dataset-id", "test/cut-v0",
+            "--set", "time_limit=5", "--no-progress"]
+    assert main(args) == 143
+    assert "hauwm datasets: terminated (SIGTERM); the 1 episodes finished are kept as test/cut-v0" in \
+        capsys.readouterr().err
+    assert open_dataset("test/cut-v0").total_episodes == 1
+    assert hauwm_metadata(open_dataset("test/cut-v0"))["task"] == TASK
+    assert signal.getsignal(signal.SIGTERM) is before
 
 
 def test_a_write_that_fails_leaves_no_partial_dataset(random_episodes, monkeypatch, datasets_root):
