@@ -15,7 +15,8 @@ from __future__ import annotations
 import contextlib
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from types import FrameType
 
 
 class Terminated(Exception):
@@ -28,20 +29,27 @@ class StopRequest:
     def __init__(self) -> None:
         self.requested = False
 
-    def note(self, signum: int, frame) -> None:
+    def note(self, signum: int, frame: FrameType | None) -> None:
         self.requested = True
 
 
 @contextlib.contextmanager
-def terminable() -> Iterator[StopRequest]:
-    """SIGTERM sets the StopRequest's flag instead of killing the process (in the main thread: elsewhere Python
-    cannot install a handler, and the flag stays unset); the handler found before comes back afterwards."""
-    request = StopRequest()
+def handling_sigterm(handler: Callable[[int, FrameType | None], None]) -> Iterator[None]:
+    """`handler` takes SIGTERM while the block runs (in the main thread: elsewhere Python cannot install a handler,
+    and the signal keeps its default); the handler found before comes back afterwards."""
     if threading.current_thread() is not threading.main_thread():
-        yield request
+        yield
         return
-    before = signal.signal(signal.SIGTERM, request.note)
+    before = signal.signal(signal.SIGTERM, handler)
     try:
-        yield request
+        yield
     finally:
         signal.signal(signal.SIGTERM, before)
+
+
+@contextlib.contextmanager
+def terminable() -> Iterator[StopRequest]:
+    """SIGTERM sets the StopRequest's flag instead of killing the process (`handling_sigterm`)."""
+    request = StopRequest()
+    with handling_sigterm(request.note):
+        yield request

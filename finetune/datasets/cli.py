@@ -18,9 +18,7 @@ import argparse
 import contextlib
 import math
 import re
-import signal
 import sys
-import threading
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -251,20 +249,16 @@ def main(argv: list[str] | None = None) -> int:
 def sigterm_as_interrupt() -> Iterator[list[int]]:
     """SIGTERM (SLURM's scancel or time limit) does what Ctrl-C does: `collect` keeps the episodes finished as a
     whole dataset, `merge` deletes its part; the list yielded gets the signal, so the exit status can say so."""
+    from finetune.termination import handling_sigterm
+
     terminated: list[int] = []
 
     def interrupt(signum: int, frame) -> None:
         terminated.append(signum)
         raise KeyboardInterrupt
 
-    if threading.current_thread() is not threading.main_thread():
+    with handling_sigterm(interrupt):
         yield terminated
-        return
-    before = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield terminated
-    finally:
-        signal.signal(signal.SIGTERM, before)
 
 
 def stopped_by(terminated: list[int]) -> tuple[str, int]:
