@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import functools
 import gc
+import os
 import resource
 import statistics
 import sys
@@ -70,11 +71,15 @@ def restarting_workers(dataset: SequenceDataset) -> DataLoader:
                       worker_init_fn=functools.partial(_init_worker, "normal"))
 
 
-def receive_cost(dataset: SequenceDataset, batches: int) -> tuple[float, float]:
-    """The training process's own CPU time (its main thread) to take one batch from a worker → median ms over
-    `batches` of (the hand-over, the copy out of its slot): each `next()` comes after a pause long enough for a
-    worker to have the batch ready, so the time is the hand-over, not the waiting."""
+def receive_cost(dataset: SequenceDataset, batches: int) -> tuple[float, float, float]:
+    """The training process's own CPU time to take one batch from a worker → median ms over `batches` of (the
+    hand-over, the copy out of its slot), both its main thread's, and the mean ms of the whole process (every
+    intra-op thread, one per core as in a fit: threads left spinning after a copy count too). Each `next()` comes
+    after a pause long enough for a worker to have the batch ready, so the time is the hand-over, not the waiting."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(os.cpu_count() or 1)
     items, hand_over, copy_out = DataLoader.__iter__(make_dataloader(dataset)), [], []
+    process_started = time.process_time()
     for _ in range(batches):
         time.sleep(0.1)
         started = time.thread_time()
@@ -84,7 +89,9 @@ def receive_cost(dataset: SequenceDataset, batches: int) -> tuple[float, float]:
             item.take()
         hand_over.append(received - started)
         copy_out.append(time.thread_time() - received)
-    return 1000 * statistics.median(hand_over), 1000 * statistics.median(copy_out)
+    process = (time.process_time() - process_started) / batches
+    torch.set_num_threads(threads)
+    return 1000 * statistics.median(hand_over), 1000 * statistics.median(copy_out), 1000 * process
 
 
 def report(label: str, seconds: float, cpu: float, sequences: int, seq_len: int) -> None:
@@ -124,9 +131,10 @@ def main() -> None:
         timing = time_epochs(dataset, (lambda d: d) if workers == 0 else make_dataloader)
         report("main process" if workers == 0 else f"DataLoader, {workers} workers", *timing, args.seq_len)
     dataset = SequenceDataset(shard_set(shards, "train"), num_workers=2, batches_per_worker=21, **settings)
-    hand_over, copy_out = receive_cost(dataset, 40)
+    hand_over, copy_out, process = receive_cost(dataset, 40)
     print(f"receiving a batch from a worker: {hand_over + copy_out:.2f} ms of the main thread's CPU (median of 40: "
-          f"hand-over {hand_over:.2f} ms, copy out of the slot {copy_out:.2f} ms)")
+          f"hand-over {hand_over:.2f} ms, copy out of the slot {copy_out:.2f} ms); {process:.2f} ms of the "
+          f"process's, all {os.cpu_count()} intra-op threads")
     for label, make_batches in (("workers started once", make_dataloader),
                                 ("workers restarted every epoch", restarting_workers)):
         dataset = SequenceDataset(shard_set(shards, "train"), num_workers=2,
