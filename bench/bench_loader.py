@@ -68,7 +68,7 @@ def time_epochs(dataset: SequenceDataset, make_batches, epochs: int = 1) -> tupl
 def restarting_workers(dataset: SequenceDataset) -> DataLoader:
     """A DataLoader that starts its workers at every epoch (what `make_dataloader` did before issue 12)."""
     return DataLoader(dataset, batch_size=None, num_workers=dataset.num_workers, persistent_workers=False,
-                      worker_init_fn=functools.partial(_init_worker, "normal"))
+                      worker_init_fn=functools.partial(_init_worker, "normal", os.getpid()))
 
 
 def receive_cost(dataset: SequenceDataset, batches: int) -> tuple[float, float, float]:

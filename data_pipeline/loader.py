@@ -381,14 +381,39 @@ def check_worker_priority(priority: str) -> None:
                           "use --data.worker_priority normal")
 
 
-def _init_worker(priority: str, _: int) -> None:
+def _init_worker(priority: str, training_process: int, _: int) -> None:
     import cv2
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle; it stops the workers
+    _end_only_with(training_process)
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
     if priority == "idle":
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+
+
+def _end_only_with(training_process: int) -> None:
+    """Let a worker end on SIGTERM only from the training process (pid `training_process`; torch's shutdown of its
+    workers, multiprocessing's at exit), and ignore one from anyone else.
+
+    SLURM (`scancel`, a time limit) and `kill -TERM -PGID` signal every process of a job, the workers too; one that
+    died of it before the training process stopped (after its step: model/sigterm.py) broke the validation under
+    way, and the fit ended with exit status 2 and no checkpoint of that step. torch's own handler ends a worker on any
+    SIGTERM, by exiting at once for its parent's. Here SIGTERM is blocked in the worker and a thread waits for it
+    (`sigwaitinfo`, which names the sender); for the training process's (or the parent's, where that is a fork
+    server) the worker exits as torch's handler would, with status 0, which torch does not report as a death. A worker
+    still ends with the training process: by its SIGTERM, its end of the epoch, or torch's watchdog once it is gone.
+    Processes that a worker starts (a `pipe:` shard URL's command) inherit the blocked signal and end on the broken
+    pipe when the worker does."""
+    senders = {training_process, os.getppid()}
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+
+    def wait() -> None:
+        while signal.sigwaitinfo({signal.SIGTERM}).si_pid not in senders:
+            pass
+        os._exit(0)
+
+    threading.Thread(target=wait, name="sigterm", daemon=True).start()
 
 
 _FETCHING = threading.Event()  # set while the main thread waits for a batch of a ResumableDataLoader
@@ -573,7 +598,7 @@ def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0,
     check_worker_priority(worker_priority)
     workers = dataset.num_workers > 0
     loader = ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
-                                 worker_init_fn=partial(_init_worker, worker_priority), persistent_workers=workers,
+                                 worker_init_fn=partial(_init_worker, worker_priority, os.getpid()), persistent_workers=workers,
                                  timeout=timeout if workers else 0, pin_memory=torch.cuda.is_available(),
                                  prefetch_factor=PREFETCH if workers else None)
     loader.worker_priority = worker_priority

@@ -5,8 +5,10 @@ that step's validation, if it has one) and exits with 143. Checkpoints are writt
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
+import subprocess
 
 import lightning
 import pytest
@@ -42,6 +44,18 @@ class Sigterm(lightning.Callback):
     def on_train_batch_start(self, trainer: lightning.Trainer, *_) -> None:
         if trainer.global_step == 3:
             os.kill(os.getpid(), signal.SIGTERM)
+
+
+class SigtermToTheJob(lightning.Callback):
+    """SIGTERM to this process and to every loader worker, from another process, as SLURM's `scancel` or a job's time
+    limit sends it to each process of the job, at the first batch of step 4's validation (as the Trainer's callback
+    `test_interrupt.SigtermToTheJob`)."""
+
+    def on_validation_batch_start(self, trainer: lightning.Trainer, pl_module, batch, batch_idx: int, *_) -> None:
+        if trainer.global_step == 4 and batch_idx == 0 and not trainer.sanity_checking:
+            workers = [str(child.pid) for child in multiprocessing.active_children()]
+            assert len(workers) == 3  # 2 train workers and 1 for the validation split (one shard)
+            subprocess.run(["kill", "-TERM", *workers, str(os.getpid())], check=True)
 
 
 @pytest.mark.parametrize("bar", [True, False], ids=["bar", "no-bar"])
@@ -94,6 +108,20 @@ def test_sigterm_before_a_step_that_validates_lets_it_validate_then_writes_its_c
     last = tmp_path / "checkpoints" / "last.ckpt"
     assert f"terminated (SIGTERM) at step 4; resume with --ckpt_path {last} (step 4, written " in capsys.readouterr().err
     assert torch.load(last, weights_only=False)["global_step"] == 4
+
+
+def test_sigterm_to_the_whole_job_during_a_validation_lets_it_finish_with_its_workers(built_shards, tmp_path, capsys):
+    """The workers got the job's SIGTERM too: they end only with the training process (a SIGTERM from it, or its
+    death), so the validation under way still gets its batches, and the fit stops after the next step (the signal
+    came after step 4's agreement). Before, they died of it, and the fit ended with exit status 2 ("DataLoader worker
+    0 (validation split) died … killed by signal 15") and no checkpoint of the step it stopped at."""
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.val_check_interval", "4",
+               "--data.num_workers", "2", "--data.val_batches", "8", "--data.batch_size", "2",
+               "--trainer.callbacks+=test_interrupt.SigtermToTheJob") == 143
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    assert f"terminated (SIGTERM) at step 5; resume with --ckpt_path {last} (step 5, written " in capsys.readouterr().err
+    assert torch.load(last, weights_only=False)["global_step"] == 5
+    assert not multiprocessing.active_children()  # every worker ended with the fit
 
 
 def test_a_checkpoint_is_written_whole_beside_the_old_one_then_renamed(tmp_path, monkeypatch):
