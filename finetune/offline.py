@@ -70,7 +70,7 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
                 "next_log": cfg.log_every}
     agent, fingerprint, counters = start_run(cfg, pretrained, OfflineAgent, action_dim, counters, rng)
     checkpoint = Path(cfg.logdir) / CHECKPOINT
-    logger = Logger(Path(cfg.logdir), step_name="update")
+    logger = Logger(Path(cfg.logdir), step_name="update", start=int(counters["updates"]))
     last_eval: dict[str, float] = {}
     bar = tqdm(total=cfg.steps, initial=counters["updates"], unit=" update", desc=f"offline {cfg.task}",
                disable=not progress, dynamic_ncols=True)

@@ -306,7 +306,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     if not replay.load(action_dim) and counters["episodes"]:
         print(f"note: {logdir / 'replay'} holds none of the {int(counters['episodes'])} episodes this run stored (moved "
               "or deleted?): it trains on the episodes it collects from here", file=sys.stderr)
-    logger = Logger(logdir)
+    logger = Logger(logdir, start=int(counters["env_step"]))
     try:
         envs = make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)
     except EnvWorkerError as error:

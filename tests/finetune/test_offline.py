@@ -96,6 +96,9 @@ def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir,
     assert set(whole) >= {"return", "normalised_return", "success_rate"}
     train_offline(offline_config(tiny_config, tmp_path / "halves", 2), export_dir, progress=False)
     assert torch.load(tmp_path / "halves" / CHECKPOINT, weights_only=True)["counters"]["updates"] == 2
+    for kind in ("train", "eval"):  # as if the run had gone on to update 3 and been killed before its checkpoint
+        with (tmp_path / "halves" / f"{kind}.csv").open("a") as f:
+            f.write("3" + "," * (len(rows(tmp_path / "halves" / f"{kind}.csv")[0]) - 1) + "\n")
     assert train_offline(offline_config(tiny_config, tmp_path / "halves", 4), export_dir, progress=False) == whole
 
     first = torch.load(tmp_path / "whole" / CHECKPOINT, weights_only=True)
@@ -106,6 +109,7 @@ def test_offline_run_writes_eval_and_a_resumed_run_continues_exactly(export_dir,
     assert [int(r["update"]) for r in rows(tmp_path / "whole" / "eval.csv")] == [2, 4]
     train = rows(tmp_path / "whole" / "train.csv")
     assert len(train) == 4
+    assert [row["update"] for row in rows(tmp_path / "halves" / "train.csv")] == ["1", "2", "3", "4"]  # 3 once
     for key in ("penalty_u_dataset", "penalty_u_imagined", "frozen_disagreement_dataset",
                 "frozen_disagreement_imagined", "imagined_model_reward"):
         assert np.isfinite(float(train[-1][key])), key
