@@ -598,8 +598,9 @@ def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0,
     check_worker_priority(worker_priority)
     workers = dataset.num_workers > 0
     loader = ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
-                                 worker_init_fn=partial(_init_worker, worker_priority, os.getpid()), persistent_workers=workers,
-                                 timeout=timeout if workers else 0, pin_memory=torch.cuda.is_available(),
+                                 worker_init_fn=partial(_init_worker, worker_priority, os.getpid()),
+                                 persistent_workers=workers, timeout=timeout if workers else 0,
+                                 pin_memory=torch.cuda.is_available(),
                                  prefetch_factor=PREFETCH if workers else None)
     loader.worker_priority = worker_priority
     if workers:  # the context torch starts the workers with (its default: the platform's)
