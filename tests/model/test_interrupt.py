@@ -9,6 +9,7 @@ import multiprocessing
 import os
 import signal
 import subprocess
+import sys
 
 import lightning
 import pytest
@@ -55,7 +56,8 @@ class SigtermToTheJob(lightning.Callback):
         if trainer.global_step == 4 and batch_idx == 0 and not trainer.sanity_checking:
             workers = [str(child.pid) for child in multiprocessing.active_children()]
             assert len(workers) == 3  # 2 train workers and 1 for the validation split (one shard)
-            subprocess.run(["kill", "-TERM", *workers, str(os.getpid())], check=True)
+            send = "import os, signal, sys; [os.kill(int(pid), signal.SIGTERM) for pid in sys.argv[1:]]"
+            subprocess.run([sys.executable, "-c", send, *workers, str(os.getpid())], check=True)
 
 
 @pytest.mark.parametrize("bar", [True, False], ids=["bar", "no-bar"])
