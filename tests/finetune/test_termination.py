@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 
 import pytest
 import torch
@@ -43,11 +44,31 @@ def test_the_handler_found_before_comes_back():
     assert signal.getsignal(signal.SIGTERM) is before
 
 
-@pytest.mark.parametrize(("who", "stopped_at"), [("learner", 64), ("workers", 60), ("everyone", 60)])
+def stopped(pid: int) -> bool:
+    """Whether process `pid` is stopped by SIGSTOP (the state field of /proc/<pid>/stat)."""
+    with open(f"/proc/{pid}/stat") as stat:
+        return stat.read().rpartition(")")[2].split()[0] == "T"
+
+
+def freeze(envs) -> None:
+    """Stop `envs`' workers once each has answered its step in flight, before they can read the next one."""
+    for pipe, process in zip(envs.parent_pipes, envs.processes):
+        assert pipe.poll(60), f"env worker {process.pid} did not answer its step"
+        os.kill(process.pid, signal.SIGSTOP)
+        deadline = time.monotonic() + 60
+        while not stopped(process.pid):
+            assert time.monotonic() < deadline, f"env worker {process.pid} did not stop"
+            time.sleep(0.01)
+
+
+@pytest.mark.parametrize(("who", "stopped_at"), [("learner", 64), ("workers", 60), ("everyone", 60),
+                                                 ("workers, having answered", 64)])
 def test_an_online_run_stops_on_sigterm_with_a_checkpoint_and_goes_on_from_it(tmp_path, capsys, monkeypatch, who,
                                                                               stopped_at):
     """SIGTERM while the env workers step (num_envs 2): to the learner, which sees it after this env step; to the
-    workers (SLURM signals every process of a job), which die in it, before or without the learner's own."""
+    workers (SLURM signals every process of a job), which die in the step, before or without the learner's own, or
+    just after they answered it, when the run stops at their next step. Both ends of that race are made certain: a
+    worker is frozen (SIGSTOP) before it can read the step it dies in, or killed once its answer is in the pipe."""
     logdir = tmp_path / "run"
     args = ["--config", "configs/finetune/demo.yaml", "--set", "agent=scratch", "--steps", "160"]
     args += tiny_run_settings(logdir, time_limit=20, prefill=40, eval_every=200, checkpoint_every=100,
@@ -58,12 +79,18 @@ def test_an_online_run_stops_on_sigterm_with_a_checkpoint_and_goes_on_from_it(tm
     train_due, sent = finetune.train.train_due, []  # it runs while the workers step (after step_async)
 
     def signalled(cfg, agent, replay, counters, window):
+        envs = made[0]
+        if counters["env_step"] == 56 and who in ("workers", "everyone"):
+            freeze(envs)  # so they die in the next step without having read it
         if counters["env_step"] == 60 and not sent:
             sent.append(who)
-            for process in made[0].processes if who != "learner" else []:
+            if who == "workers, having answered":
+                assert all(pipe.poll(60) for pipe in envs.parent_pipes)
+            for process in envs.processes if who != "learner" else []:
                 os.kill(process.pid, signal.SIGTERM)
+                os.kill(process.pid, signal.SIGCONT)  # a frozen worker: the pending SIGTERM ends it
                 process.join()
-            if who != "workers":
+            if who in ("learner", "everyone"):
                 os.kill(os.getpid(), signal.SIGTERM)
         return train_due(cfg, agent, replay, counters, window)
 
