@@ -119,10 +119,14 @@ class EnsembleRSSM(nn.Module):
         hidden = F.elu(self.prior_hidden(torch.cat([deter, cond.to(deter.dtype)], dim=-1)))  # [M, B, H]
         return _mean_std(self.prior_out(hidden), self.min_std, self.max_std)
 
+    def transition(self, prev: RSSMState, cond: torch.Tensor) -> torch.Tensor:
+        """The deterministic path: deter_t [B, D] from the previous state and this step's condition [B, C]."""
+        x = self.img_in(torch.cat([prev.stoch, cond.to(prev.stoch.dtype)], dim=-1))
+        return self.cell(x, prev.deter.to(x.dtype))
+
     def img_step(self, prev: RSSMState, cond: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One transition without an observation: → deter [B, D], prior mean and std [M, B, S]."""
-        x = self.img_in(torch.cat([prev.stoch, cond.to(prev.stoch.dtype)], dim=-1))
-        deter = self.cell(x, prev.deter.to(x.dtype))
+        deter = self.transition(prev, cond)
         return (deter, *self.heads(deter, cond))
 
     def obs_step(
@@ -131,16 +135,17 @@ class EnsembleRSSM(nn.Module):
         cond: torch.Tensor,
         embed: torch.Tensor,
         noise: torch.Tensor | None = None,
-    ) -> tuple[RSSMState, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Transition plus posterior: → (post state, post mean, post std [B, S], prior mean, prior std [M, B, S]).
+    ) -> tuple[RSSMState, torch.Tensor, torch.Tensor]:
+        """Transition plus posterior: → (post state, post mean, post std [B, S]). The prior heads of this step are
+        `heads(state.deter, cond)`: the recurrence does not need them.
 
         noise [B, S]: the standard-normal draw of the posterior sample (fresh from the global RNG when None).
         """
-        deter, prior_mean, prior_std = self.img_step(prev, cond)
+        deter = self.transition(prev, cond)
         raw = self.posterior(torch.cat([deter, embed.to(deter.dtype)], dim=-1))
         post_mean, post_std = _mean_std(raw, self.min_std, self.max_std)
         stoch = post_mean + post_std * (torch.randn_like(post_mean) if noise is None else noise)
-        return RSSMState(deter, stoch), post_mean, post_std, prior_mean, prior_std
+        return RSSMState(deter, stoch), post_mean, post_std
 
     def observe(
         self,
@@ -154,18 +159,23 @@ class EnsembleRSSM(nn.Module):
         noise [B, L, S]: the standard-normal draws of the posterior samples (`draw_noise`; when None, each step
         draws its own from the global RNG). Passing it in keeps the random draw out of a compiled region and
         makes it reproducible (pre-training); fine-tuning draws step by step.
+
+        Only the GRU and the posterior are recurrent: the M prior heads of all L steps are one batched call after
+        the loop, and the inputs are unbound along time (the gradient of L slices is then one stack, not L
+        zero-filled copies summed) — fewer, larger kernels on a launch-bound GPU (bench/bench_step_ops.py).
         """
+        batch, length = embeds.shape[:2]
         if state is None:
-            state = self.initial(embeds.shape[0], embeds.device)
+            state = self.initial(batch, embeds.device)
+        noises = [None] * length if noise is None else noise.unbind(1)
         steps = []
-        for t in range(embeds.shape[1]):
-            state, *dists = self.obs_step(state, conds[:, t], embeds[:, t], None if noise is None else noise[:, t])
-            steps.append((state.deter, state.stoch, *dists))
-        deter, stoch, post_mean, post_std, prior_mean, prior_std = zip(*steps)
-        return Observation(
-            torch.stack(deter, 1), torch.stack(stoch, 1), torch.stack(post_mean, 1), torch.stack(post_std, 1),
-            torch.stack(prior_mean, 2), torch.stack(prior_std, 2),  # heads stay in front: [M, B, L, S]
-        )
+        for cond, embed, step_noise in zip(conds.unbind(1), embeds.unbind(1), noises):
+            state, post_mean, post_std = self.obs_step(state, cond, embed, step_noise)
+            steps.append((state.deter, state.stoch, post_mean, post_std))
+        deter, stoch, post_mean, post_std = (torch.stack(values, 1) for values in zip(*steps))
+        prior_mean, prior_std = self.heads(deter.flatten(0, 1), conds.flatten(0, 1))  # [M, B·L, S]
+        return Observation(deter, stoch, post_mean, post_std,
+                           prior_mean.unflatten(1, (batch, length)), prior_std.unflatten(1, (batch, length)))
 
     def imagine(self, state: RSSMState, conds: torch.Tensor, head: int | None = None) -> tuple[RSSMState, torch.Tensor]:
         """Open-loop rollout over conds [B, H, C]: each next stoch is the ensemble mean μ̄ (head=None) or head i's mean.

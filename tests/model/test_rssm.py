@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from model.rssm import EnsembleRSSM, RSSMState, _mean_std
+from model.rssm import EnsembleRSSM, Observation, RSSMState, _mean_std
 from model.world_model import WorldModel
 
 from conftest import SMALL  # noqa: I001 (tests/model/conftest.py)
@@ -22,8 +22,10 @@ def test_steps_return_documented_shapes_and_float32():
     assert prev.deter.shape == (4, 20) and prev.stoch.shape == (4, 6)
     deter, mean, std = rssm.img_step(prev, torch.randn(4, 8))
     assert deter.shape == (4, 20) and mean.shape == std.shape == (5, 4, 6)
-    post, post_mean, post_std, prior_mean, prior_std = rssm.obs_step(prev, torch.randn(4, 8), torch.randn(4, 12))
+    cond = torch.randn(4, 8)
+    post, post_mean, post_std = rssm.obs_step(prev, cond, torch.randn(4, 12))
     assert isinstance(post, RSSMState) and post.stoch.shape == post_mean.shape == post_std.shape == (4, 6)
+    prior_mean, prior_std = rssm.heads(post.deter, cond)
     assert prior_mean.shape == (5, 4, 6)
     assert rssm.feature(post).shape == (4, 26)
     assert all(t.dtype == torch.float32 for t in (post_mean, post_std, prior_mean, prior_std))
@@ -58,6 +60,33 @@ def test_batched_heads_equal_a_per_head_reference():
         assert torch.allclose(std[i], 0.1 + 0.9 * torch.sigmoid(ref_std + 2.0), atol=1e-6)
     # and the heads really differ (independent initialisation)
     assert not torch.allclose(mean[0], mean[1])
+
+
+def test_observe_equals_a_step_by_step_filter_in_values_and_gradients():
+    """observe computes the prior heads of all steps after the loop and unbinds its inputs along time: the same
+    numbers, forward and backward, as the transition, heads and posterior taken one step at a time."""
+    rssm = small_rssm()
+    embeds, conds = torch.randn(3, 5, 12, requires_grad=True), torch.randn(3, 5, 8, requires_grad=True)
+    noise = rssm.draw_noise(3, 5, torch.Generator().manual_seed(0))
+
+    def step_by_step() -> list[torch.Tensor]:
+        state, steps = rssm.initial(3), []
+        for t in range(5):
+            deter, prior_mean, prior_std = rssm.img_step(state, conds[:, t])
+            post_mean, post_std = _mean_std(rssm.posterior(torch.cat([deter, embeds[:, t]], -1)), 0.1, 1.0)
+            state = RSSMState(deter, post_mean + post_std * noise[:, t])
+            steps.append((deter, state.stoch, post_mean, post_std, prior_mean, prior_std))
+        return [torch.stack(values, 2 if name.startswith("prior") else 1)
+                for name, values in zip(Observation._fields, zip(*steps))]
+
+    def values_and_gradients(filtered: list[torch.Tensor]) -> list[torch.Tensor]:
+        loss = sum((value * torch.linspace(-1, 1, value.numel()).view_as(value)).sum() for value in filtered)
+        inputs = [embeds, conds, *rssm.parameters()]
+        return filtered + list(torch.autograd.grad(loss, inputs))
+
+    for ours, reference in zip(values_and_gradients(list(rssm.observe(embeds, conds, noise=noise))),
+                               values_and_gradients(step_by_step())):
+        torch.testing.assert_close(ours, reference, rtol=1e-5, atol=1e-6)
 
 
 def test_distribution_parameters_stay_float32_under_autocast():
@@ -96,9 +125,9 @@ def test_the_heads_read_the_gap_and_the_posterior_reads_the_new_state():
     heads_mean, heads_std = rssm.heads(deter, cond)
     assert torch.equal(mean, heads_mean) and torch.equal(std, heads_std)
     assert not torch.allclose(rssm.heads(deter, torch.zeros_like(cond))[0], mean)  # the gap changes the heads
-    state, post_mean, post_std, prior_mean, _ = rssm.obs_step(prev, cond, embed, noise=torch.zeros(4, 6))
+    state, post_mean, post_std = rssm.obs_step(prev, cond, embed, noise=torch.zeros(4, 6))
     expected_mean, expected_std = _mean_std(rssm.posterior(torch.cat([deter, embed], -1)), rssm.min_std, rssm.max_std)
-    assert torch.equal(state.deter, deter) and torch.equal(prior_mean, mean)
+    assert torch.equal(state.deter, deter)
     assert torch.equal(post_mean, expected_mean) and torch.equal(post_std, expected_std)
     assert torch.equal(state.stoch, post_mean)  # zero noise: the sample is the mean
 
