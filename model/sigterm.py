@@ -13,6 +13,13 @@ of their flags in one all-reduce of one number (a single process reads its own).
 them set Lightning's own `received_sigterm` after that same step, so that Lightning raises its SIGTERMException on
 every rank at the end of it, where `LastStepCheckpoint` writes last.ckpt; a step that validates runs its
 validation to its end first. Lightning restores the handlers it found when the fit ends.
+
+Under DDP the agreement costs the step no wait for the GPU: the all-reduced flag of step s is read at the end of
+step s + 1 (so the ranks stop one step after the signal), by which time its copy to the host is done, where reading
+it at once would make the host wait for all of step s's GPU work before it could queue the next step. And since
+Lightning's `received_sigterm` is now only set here, after the ranks agreed, Lightning's own check of it, a
+broadcast read on the host before every step under DDP (`_broadcast_sigterm_tensor`, 2.6), is turned off: it
+would find nothing and cost a synchronisation each step.
 """
 
 from __future__ import annotations
@@ -31,6 +38,10 @@ class AgreedSigterm(Callback):
         self.signalled = False  # this rank got SIGTERM (from the cluster or from the rank that started it)
         self.launcher = None
         self.stopping = False  # the ranks agreed to stop after this step
+        # DDP: this rank's flag on the device, the last step's agreed flag on the host, and its copy's CUDA event
+        self._flag: torch.Tensor | None = None
+        self._host_flag = torch.zeros(())
+        self._copied: torch.cuda.Event | None = None
 
     def on_sanity_check_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
         self.take_over(trainer)  # a signal in the sanity check reached Lightning's handler, which hung the ranks
@@ -45,6 +56,8 @@ class AgreedSigterm(Callback):
         if threading.current_thread() is threading.main_thread():
             self.launcher = trainer.strategy.launcher
             signal.signal(signal.SIGTERM, self.note)
+            # Lightning's per-step broadcast of its flag, which only this callback sets now (module docstring)
+            trainer.fit_loop.epoch_loop._broadcast_sigterm_tensor = lambda: None
 
     def note(self, signum: int, frame: FrameType | None) -> None:
         if not self.signalled and self.launcher is not None:
@@ -53,14 +66,32 @@ class AgreedSigterm(Callback):
 
     def on_train_batch_end(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule, outputs, batch,
                            batch_idx: int) -> None:
-        signalled = self.signalled
-        if trainer.world_size > 1:
-            flags = torch.tensor(float(signalled), device=pl_module.device)
-            torch.distributed.all_reduce(flags, op=torch.distributed.ReduceOp.MAX)
-            signalled = bool(flags.item())
-        if signalled:
+        agreed = self.signalled if trainer.world_size == 1 else self.agree_one_step_late(pl_module.device)
+        if agreed:
             # Lightning's own flag (it has no setter): the training loop raises SIGTERMException after this batch
             self.stopping = trainer._signal_connector.received_sigterm = True
+
+    def agree_one_step_late(self, device: torch.device) -> bool:
+        """Start the all-reduce (max) of this step's flag and its copy to the host, and return the ranks' agreed
+        flag of the step before (False at the first step): that copy was queued a whole step ago, so reading it
+        does not wait for this step's GPU work. The flag lives on the device and is set there by a kernel, as
+        making a tensor from a Python number on a GPU would wait for the GPU."""
+        cuda = device.type == "cuda"
+        if self._flag is None:  # the first step: nothing agreed yet
+            self._flag = torch.zeros((), device=device)
+            self._host_flag = torch.zeros((), pin_memory=cuda)
+            self._copied = torch.cuda.Event() if cuda else None
+            agreed = False
+        else:
+            if self._copied is not None:
+                self._copied.synchronize()
+            agreed = bool(self._host_flag)
+        self._flag.fill_(float(self.signalled))
+        torch.distributed.all_reduce(self._flag, op=torch.distributed.ReduceOp.MAX)
+        self._host_flag.copy_(self._flag, non_blocking=True)
+        if self._copied is not None:
+            self._copied.record()
+        return agreed
 
     def on_validation_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
         if self.stopping:  # the step validates: its evaluation loop would raise after its first batch

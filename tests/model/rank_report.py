@@ -1,5 +1,5 @@
-"""Test callbacks for the DDP tests: each rank writes how many steps it took and a hash of its final weights;
-each rank sends itself SIGTERM, at a different point of the same step."""
+"""Test callbacks for the DDP tests: each rank writes how many steps it took, the broadcasts it made while training
+and a hash of its final weights; each rank sends itself SIGTERM, at a different point of the same step."""
 
 from __future__ import annotations
 
@@ -10,24 +10,34 @@ import signal
 from pathlib import Path
 
 import lightning as L
+import torch
 
 
 class RankReport(L.Callback):
     def __init__(self, out_dir: str):
         self.out_dir = Path(out_dir)
         self.batches = 0
+        self.broadcasts = 0  # torch.distributed.broadcast calls while training (each one a wait for a GPU)
+        self._broadcast = torch.distributed.broadcast
+
+    def on_train_start(self, trainer, pl_module):
+        def counted(*args, **kwargs):
+            self.broadcasts += 1
+            return self._broadcast(*args, **kwargs)
+        torch.distributed.broadcast = counted
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         self.batches += 1
 
     def on_train_end(self, trainer, pl_module):
+        torch.distributed.broadcast = self._broadcast
         digest = hashlib.sha256()
         for name, tensor in sorted(pl_module.state_dict().items()):
             digest.update(name.encode())
             digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
         self.out_dir.mkdir(parents=True, exist_ok=True)
         report = {"rank": trainer.global_rank, "world_size": trainer.world_size, "global_step": trainer.global_step,
-                  "batches": self.batches, "weights_sha256": digest.hexdigest(),
+                  "batches": self.batches, "broadcasts": self.broadcasts, "weights_sha256": digest.hexdigest(),
                   "lambda": float(pl_module.hcu_weight()), "skipped": int(pl_module.scaler_skips + pl_module.nonfinite_steps)}
         (self.out_dir / f"rank{trainer.global_rank}.json").write_text(json.dumps(report))
 

@@ -57,31 +57,36 @@ def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shard
     assert rank0["world_size"] == rank1["world_size"] == 2
     assert rank0["global_step"] == rank1["global_step"] == 5
     assert rank0["batches"] == rank1["batches"] == 5
+    # no per-step broadcast read on the host (Lightning's SIGTERM check, which model/sigterm.py replaces): on a GPU
+    # each would make the host wait for the step's GPU work
+    assert rank0["broadcasts"] == rank1["broadcasts"] == 0
     assert rank0["weights_sha256"] == rank1["weights_sha256"]
     assert rank0["lambda"] == rank1["lambda"] != 1.0  # λ moved, identically on both ranks
 
 
 def test_sigterm_to_every_rank_at_different_points_stops_them_after_the_same_step(built_shards, tmp_path):
     """As SLURM sends it: each rank gets SIGTERM, rank 0 before step 3's batch and rank 1 inside its backward pass
-    (rank_report.SigtermEveryRank). Lightning's own handler hung here; every rank stops after step 3, last.ckpt holds
-    step 3, and the fit exits with 143."""
+    (rank_report.SigtermEveryRank). Lightning's own handler hung here; the ranks agree on step 3's flags after step 4
+    (one step late: reading them costs no wait for the GPU), every rank stops after step 4, last.ckpt holds step 4,
+    and the fit exits with 143."""
     done = ddp_fit(built_shards, tmp_path, [SAVE_LAST, "    - class_path: rank_report.SigtermEveryRank\n"])
-    assert_terminated_at(done, tmp_path / "run", step=3)
+    assert_terminated_at(done, tmp_path / "run", step=4)
 
 
 def test_sigterm_to_every_rank_before_a_step_that_validates_writes_last_ckpt_after_it(built_shards, tmp_path):
-    """The step the ranks agree to stop after (3) validates (every 3 steps, 2 batches): its validation runs to its
-    end and last.ckpt holds step 3 (Lightning raised inside the validation, where no checkpoint is written)."""
+    """The step the ranks agree to stop after (4) validates (every 4 steps, 2 batches): its validation runs to its
+    end and last.ckpt holds step 4 (Lightning raised inside the validation, where no checkpoint is written)."""
     done = ddp_fit(built_shards, tmp_path, [SAVE_LAST, "    - class_path: rank_report.SigtermEveryRank\n"],
-                   ("--trainer.limit_val_batches", "2", "--trainer.val_check_interval", "3"))
-    assert_terminated_at(done, tmp_path / "run", step=3)
+                   ("--trainer.limit_val_batches", "2", "--trainer.val_check_interval", "4"))
+    assert_terminated_at(done, tmp_path / "run", step=4)
 
 
-def test_sigterm_to_every_rank_in_the_sanity_check_stops_them_after_the_first_step(built_shards, tmp_path):
-    """A SIGTERM before the fit trains (here in its sanity check) reached Lightning's own handler, which hung."""
+def test_sigterm_to_every_rank_in_the_sanity_check_stops_them_after_the_second_step(built_shards, tmp_path):
+    """A SIGTERM before the fit trains (here in its sanity check) reached Lightning's own handler, which hung. The
+    ranks agree on step 1's flags after step 2."""
     done = ddp_fit(built_shards, tmp_path, [SAVE_LAST, "    - class_path: rank_report.SigtermInSanityCheck\n"],
                    ("--trainer.limit_val_batches", "2", "--trainer.num_sanity_val_steps", "1"), timeout=120)
-    assert_terminated_at(done, tmp_path / "run", step=1)
+    assert_terminated_at(done, tmp_path / "run", step=2)
 
 
 class ResumableBatches:
