@@ -8,7 +8,8 @@ collectives no longer pair up, and the fit hangs without writing a checkpoint (5
 docs/pretraining.md). And at a step that validates, in one process as under DDP, Lightning raises inside the
 validation, where no checkpoint can be written. From the sanity check on (or the start of training, without one),
 this callback stands in for Lightning's handler: the signal only sets a flag (and is passed on to the ranks that
-Lightning's launcher started from this process, as Lightning does); after every step the ranks take the maximum
+Lightning's launcher started from this process, and to a handler the process had before the fit, as Lightning
+does); after every step the ranks take the maximum
 of their flags in one all-reduce of one number (a single process reads its own). When one was signalled, all of
 them set Lightning's own `received_sigterm` after that same step, so that Lightning raises its SIGTERMException on
 every rank at the end of it, where `LastStepCheckpoint` writes last.ckpt; a step that validates runs its
@@ -37,11 +38,15 @@ class AgreedSigterm(Callback):
     def __init__(self) -> None:
         self.signalled = False  # this rank got SIGTERM (from the cluster or from the rank that started it)
         self.launcher = None
+        self.handler_before = None  # the process's own SIGTERM handler before the fit (submitit's, a user's)
         self.stopping = False  # the ranks agreed to stop after this step
         # DDP: this rank's flag on the device, the last step's agreed flag on the host, and its copy's CUDA event
         self._flag: torch.Tensor | None = None
         self._host_flag = torch.zeros(())
         self._copied: torch.cuda.Event | None = None
+
+    def setup(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule, stage: str) -> None:
+        self.handler_before = signal.getsignal(signal.SIGTERM)  # before Lightning installs its own, after this hook
 
     def on_sanity_check_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
         self.take_over(trainer)  # a signal in the sanity check reached Lightning's handler, which hung the ranks
@@ -63,6 +68,8 @@ class AgreedSigterm(Callback):
         if not self.signalled and self.launcher is not None:
             self.launcher.kill(signum)  # the ranks Lightning started from this one, where it did (none on a cluster)
         self.signalled = True
+        if callable(self.handler_before):  # it runs too, as Lightning's own handler runs it
+            self.handler_before(signum, frame)
 
     def on_train_batch_end(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule, outputs, batch,
                            batch_idx: int) -> None:

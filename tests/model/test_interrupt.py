@@ -101,6 +101,24 @@ def test_sigterm_writes_the_checkpoint_of_the_step_it_stops_at_and_exits_143(bui
     assert resumed.keys() == unbroken.keys() and all(torch.equal(resumed[key], unbroken[key]) for key in resumed)
 
 
+def test_a_sigterm_handler_the_process_had_before_the_fit_still_runs(built_shards, tmp_path, capsys):
+    """A launcher's or a user's own SIGTERM handler (submitit requeues a job from one) is called too, as Lightning's
+    handler calls it, and the fit still stops with its checkpoint."""
+    calls = []
+
+    def own_handler(signum, frame):
+        calls.append(signum)
+
+    before = signal.signal(signal.SIGTERM, own_handler)
+    try:
+        assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.callbacks+=test_interrupt.Sigterm") == 143
+        assert signal.getsignal(signal.SIGTERM) is own_handler  # in place again after the fit
+    finally:
+        signal.signal(signal.SIGTERM, before)
+    assert calls == [signal.SIGTERM]
+    assert "terminated (SIGTERM) at step 4; resume with --ckpt_path " in capsys.readouterr().err
+
+
 def test_sigterm_before_a_step_that_validates_lets_it_validate_then_writes_its_checkpoint(built_shards, tmp_path,
                                                                                          capsys):
     """Lightning's own handler raised inside the validation of step 4 (after its first of 2 batches), where no
