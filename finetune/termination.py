@@ -36,11 +36,21 @@ class StopRequest:
 @contextlib.contextmanager
 def handling_sigterm(handler: Callable[[int, FrameType | None], None]) -> Iterator[None]:
     """`handler` takes SIGTERM while the block runs (in the main thread: elsewhere Python cannot install a handler,
-    and the signal keeps its default); the handler found before comes back afterwards."""
+    and the signal keeps its default). A handler the process had before (a launcher's such as submitit's, a user's)
+    is called after it, also when it raises, and comes back afterwards."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    before = signal.signal(signal.SIGTERM, handler)
+    before = signal.getsignal(signal.SIGTERM)
+
+    def handler_then_before(signum: int, frame: FrameType | None) -> None:
+        try:
+            handler(signum, frame)
+        finally:
+            if callable(before):
+                before(signum, frame)
+
+    signal.signal(signal.SIGTERM, handler_then_before)
     try:
         yield
     finally:

@@ -36,12 +36,21 @@ def sigterm_once(function, when):
     return wrapped
 
 
-def test_the_handler_found_before_comes_back():
-    before = signal.getsignal(signal.SIGTERM)
-    with terminable() as stop:
-        os.kill(os.getpid(), signal.SIGTERM)
-        assert stop.requested
-    assert signal.getsignal(signal.SIGTERM) is before
+def test_the_handler_found_before_is_called_too_and_comes_back():
+    """A launcher's or a user's own SIGTERM handler (submitit requeues a job from one) still runs."""
+    calls = []
+
+    def own_handler(signum, frame):
+        calls.append(signum)
+
+    before = signal.signal(signal.SIGTERM, own_handler)
+    try:
+        with terminable() as stop:
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert stop.requested and calls == [signal.SIGTERM]
+        assert signal.getsignal(signal.SIGTERM) is own_handler
+    finally:
+        signal.signal(signal.SIGTERM, before)
 
 
 def stopped(pid: int) -> bool:
