@@ -65,6 +65,13 @@ def test_bench_agent_runs_on_the_cpu():
         assert row in shown, shown
 
 
+def test_bench_step_ops_counts_an_eager_step():
+    done = run_script(REPO / "bench" / "bench_step_ops.py", "--sizes", "tiny", "--length", "4", "--no-compile",
+                      timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.startswith("machine: ") and "tiny: eager step (forward + backward) " in done.stdout
+
+
 def test_bench_loader_runs_every_section(built_shards):
     done = run_script(REPO / "bench" / "bench_loader.py", "--shards", str(built_shards), "--batches", "4",
                       "--epochs", "2", "--epoch-batches", "2", "--batch-size", "4", "--seq-len", "8", timeout=300)
