@@ -1,5 +1,5 @@
-"""`AgreedSigterm`: on SIGTERM, the fit stops after the current step with last.ckpt of that step, on every DDP rank
-after the same one, whichever ranks got the signal.
+"""`AgreedSigterm`: on SIGTERM, the fit stops after the current step (under DDP the next) with last.ckpt of that
+step, on every DDP rank after the same one, whichever ranks got the signal.
 
 SLURM (`scancel`, a job's time limit, preemption) and Kubernetes send SIGTERM to every process of a job at once.
 Lightning 2.6's handler then calls `torch.distributed.broadcast` inside the signal handler, on every rank, at
@@ -9,11 +9,11 @@ docs/pretraining.md). And at a step that validates, in one process as under DDP,
 validation, where no checkpoint can be written. From the sanity check on (or the start of training, without one),
 this callback stands in for Lightning's handler: the signal only sets a flag (and is passed on to the ranks that
 Lightning's launcher started from this process, and to a handler the process had before the fit, as Lightning
-does); after every step the ranks take the maximum
-of their flags in one all-reduce of one number (a single process reads its own). When one was signalled, all of
-them set Lightning's own `received_sigterm` after that same step, so that Lightning raises its SIGTERMException on
-every rank at the end of it, where `LastStepCheckpoint` writes last.ckpt; a step that validates runs its
-validation to its end first. Lightning restores the handlers it found when the fit ends.
+does); after every step the ranks take the maximum of their flags in one all-reduce of one number (a single
+process reads its own). When one was signalled, all of them set Lightning's own `received_sigterm` after that
+step, so that Lightning raises its SIGTERMException on every rank at the end of it, where `LastStepCheckpoint`
+writes last.ckpt; a step that validates runs its validation to its end first. Lightning restores the handlers it
+found when the fit ends.
 
 Under DDP the agreement costs the step no wait for the GPU: the all-reduced flag of step s is read at the end of
 step s + 1 (so the ranks stop one step after the signal), by which time its copy to the host is done, where reading
@@ -53,6 +53,7 @@ class AgreedSigterm(Callback):
 
     def on_train_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
         self.take_over(trainer)
+        self._flag = None  # nothing agreed yet in this fit
         if trainer.received_sigterm:  # Lightning's handler got one first, on this rank: the ranks agree on it after
             #                           the first step (not raised on this rank alone)
             self.signalled, trainer._signal_connector.received_sigterm = True, False
@@ -68,7 +69,7 @@ class AgreedSigterm(Callback):
         if not self.signalled and self.launcher is not None:
             self.launcher.kill(signum)  # the ranks Lightning started from this one, where it did (none on a cluster)
         self.signalled = True
-        if callable(self.handler_before):  # it runs too, as Lightning's own handler runs it
+        if callable(self.handler_before) and self.handler_before != self.note:  # it runs too, as under Lightning's
             self.handler_before(signum, frame)
 
     def on_train_batch_end(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule, outputs, batch,
