@@ -64,6 +64,20 @@ def test_ddp_two_cpu_processes_take_the_same_steps_and_end_identical(built_shard
     assert rank0["lambda"] == rank1["lambda"] != 1.0  # λ moved, identically on both ranks
 
 
+def test_ddp_with_the_compiled_step_takes_the_same_steps_and_ends_identical(built_shards, tmp_path):
+    """ssv2.yaml's combination, DDP and `model.compile`, on the CPU: gloo ranks and inductor (its CUDA graphs need a
+    GPU). The compiled losses run inside DDP's forward, and its gradient hooks fire from the compiled backward."""
+    reports = tmp_path / "reports"
+    done = ddp_fit(built_shards, tmp_path,
+                   [f"    - class_path: rank_report.RankReport\n      init_args:\n        out_dir: {reports}\n"],
+                   ("--model.compile", "default"), timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rank0, rank1 = (json.loads((reports / f"rank{r}.json").read_text()) for r in (0, 1))
+    assert rank0["global_step"] == rank1["global_step"] == 5 and rank0["skipped"] == rank1["skipped"] == 0
+    assert rank0["weights_sha256"] == rank1["weights_sha256"]
+    assert rank0["lambda"] == rank1["lambda"] != 1.0
+
+
 def test_sigterm_to_every_rank_at_different_points_stops_them_after_the_same_step(built_shards, tmp_path):
     """As SLURM sends it: each rank gets SIGTERM, rank 0 before step 3's batch and rank 1 inside its backward pass
     (rank_report.SigtermEveryRank). Lightning's own handler hung here; the ranks agree on step 3's flags after step 4
