@@ -8,9 +8,13 @@ any device, so they are measured here on the CPU:
   eager: the operators one training step dispatches (forward, every loss term, backward; no optimizer), counted
          below autograd with a TorchDispatchMode, views and allocations left out (they launch nothing);
   compiled: the kernels inductor generates for the step's observe + losses, forward and backward (its C++
-         kernels on a CPU; Triton's on a GPU fuse a little differently, so compare counts on one device only).
+         kernels on a CPU; Triton's on a GPU fuse a little differently, so compare counts on one device only);
+  agent: the operators of one eager fine-tuning update (`Agent.update` of the HAUWM agent: both streams' filtering,
+         the model loss, imagination, the actor-critic losses, backward and the Adam steps) at Table 3's sequence
+         length 50 and horizon 15, small widths (the counts depend on lengths, not widths). On a CPU torch's Adam
+         runs per parameter; on a GPU it runs multi-tensor, with fewer operators.
 
-    python bench/bench_step_ops.py [--sizes paper tiny] [--length 16] [--no-compile]
+    python bench/bench_step_ops.py [--sizes paper tiny] [--length 16] [--no-compile] [--no-agent]
 """
 
 from __future__ import annotations
@@ -80,11 +84,32 @@ def compiled_kernels(size: str, length: int) -> tuple[int, float]:
     return metrics.generated_kernel_count, time.perf_counter() - started
 
 
+def agent_update_kernels(length: int = 50) -> Counter[str]:
+    """The operators of one eager update of the HAUWM agent on a batch of 2 sequences of `length` (after one warm-up
+    update: the optimizers' states exist)."""
+    import numpy as np
+
+    from bench.bench_agent import ACTION_DIM, SETTINGS, build
+
+    export_sizes, _ = SETTINGS["small (16x32, 200 units, cnn 16)"]
+    agent, _ = build(export_sizes, dict(batch_size=2, seq_len=length, units=200, hidden=100, encoder_width=16),
+                     "hauwm", torch.device("cpu"), None)
+    rng = np.random.default_rng(0)
+    batch = {"obs": rng.integers(0, 256, (2, length, 3, 64, 64), dtype=np.uint8),
+             "action": rng.uniform(-1, 1, (2, length, ACTION_DIM)).astype(np.float32),
+             "reward": rng.normal(size=(2, length)).astype(np.float32)}
+    agent.update(batch)
+    with KernelCounter() as counter:
+        agent.update(batch)
+    return counter.counts
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", choices=sorted(SIZES), default=["paper"])
     parser.add_argument("--length", type=int, default=16, help="frames per sequence L (ssv2.yaml: 16)")
     parser.add_argument("--no-compile", action="store_true", help="count the eager operators only")
+    parser.add_argument("--no-agent", action="store_true", help="leave out the fine-tuning update")
     args = parser.parse_args()
     print(f"machine: {describe_machine()}")
     print(f"settings: L {args.length}, M 7, batch 2 (the counts do not depend on it), float32")
@@ -95,6 +120,10 @@ def main() -> None:
         if not args.no_compile:
             kernels, seconds = compiled_kernels(size, args.length)
             print(f"{size}: compiled step (forward + backward) {kernels} inductor kernels (compiled in {seconds:.0f} s)")
+    if not args.no_agent:
+        counts = agent_update_kernels()
+        top = ", ".join(f"{name} {count}" for name, count in counts.most_common(6))
+        print(f"agent: eager update (L 50, H 15) {sum(counts.values())} kernel-launching operators ({top})")
 
 
 if __name__ == "__main__":

@@ -51,9 +51,9 @@ def lambda_return(rewards: torch.Tensor, values: torch.Tensor, gamma: float, lam
     λ = 0 gives the one-step target r_{t+1} + γ v(z_{t+1}); λ = 1 gives the discounted Monte-Carlo
     return Σ_{i≥t} γ^{i−t} r_{i+1} bootstrapped with γ^{H−t} v(z_H).
     """
-    horizon = rewards.shape[0]
-    returns = [values[horizon]]
-    for t in reversed(range(horizon)):
+    rewards, values = rewards.unbind(0), values.unbind(0)  # rows: their gradient is one stack, not H copies summed
+    returns = [values[-1]]
+    for t in reversed(range(len(rewards))):
         returns.append(rewards[t] + gamma * ((1 - lam) * values[t + 1] + lam * returns[-1]))
     return torch.stack(returns[:0:-1])  # [H, N], in time order
 

@@ -70,6 +70,7 @@ def test_bench_step_ops_counts_an_eager_step():
                       timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.startswith("machine: ") and "tiny: eager step (forward + backward) " in done.stdout
+    assert "agent: eager update (L 50, H 15) " in done.stdout
 
 
 def test_bench_loader_runs_every_section(built_shards):
