@@ -1,6 +1,6 @@
-"""How many kernels a pre-training step launches: the operators of an eager step and the kernels of a compiled one.
+"""How many kernels a training step launches: pre-training's step, eager and compiled, and fine-tuning's update.
 
-On a GPU the paper-size step is launch-bound (issue 12): every operator of an eager step is one kernel launch or
+On a GPU the paper-size step is launch-bound (issue 12; fine-tuning's eager update too, issue 14): every operator of an eager step is one kernel launch or
 more, and a compiled step's CUDA graph replays one node per kernel — the H100's bare compiled step spent 3 ms of
 its 10 ms of host time in its two cudaGraphLaunch calls, which grow with the nodes. Both counts are the same on
 any device, so they are measured here on the CPU:
