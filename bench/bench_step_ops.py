@@ -1,9 +1,9 @@
 """How many kernels a training step launches: pre-training's step, eager and compiled, and fine-tuning's update.
 
-On a GPU the paper-size step is launch-bound (issue 12; fine-tuning's eager update too, issue 14): every operator of an eager step is one kernel launch or
-more, and a compiled step's CUDA graph replays one node per kernel — the H100's bare compiled step spent 3 ms of
-its 10 ms of host time in its two cudaGraphLaunch calls, which grow with the nodes. Both counts are the same on
-any device, so they are measured here on the CPU:
+On a GPU the paper-size step is launch-bound (issue 12; fine-tuning's eager update too, issue 14): every operator
+of an eager step is one kernel launch or more, and a compiled step's CUDA graph replays one node per kernel — the
+H100's bare compiled step spent 3 ms of its 10 ms of host time in its two cudaGraphLaunch calls, which grow with the
+nodes. The counts are the same on any device, so they are measured here on the CPU:
 
   eager: the operators one training step dispatches (forward, every loss term, backward; no optimizer), counted
          below autograd with a TorchDispatchMode, views and allocations left out (they launch nothing);
@@ -119,7 +119,8 @@ def main() -> None:
         print(f"{size}: eager step (forward + backward) {sum(counts.values())} kernel-launching operators ({top})")
         if not args.no_compile:
             kernels, seconds = compiled_kernels(size, args.length)
-            print(f"{size}: compiled step (forward + backward) {kernels} inductor kernels (compiled in {seconds:.0f} s)")
+            print(f"{size}: compiled step (forward + backward) {kernels} inductor kernels "
+                  f"(compiled in {seconds:.0f} s)")
     if not args.no_agent:
         counts = agent_update_kernels()
         top = ", ".join(f"{name} {count}" for name, count in counts.most_common(6))

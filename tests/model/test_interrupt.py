@@ -111,7 +111,8 @@ def test_a_sigterm_handler_the_process_had_before_the_fit_still_runs(built_shard
 
     before = signal.signal(signal.SIGTERM, own_handler)
     try:
-        assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.callbacks+=test_interrupt.Sigterm") == 143
+        sigterm_at_step_3 = "--trainer.callbacks+=test_interrupt.Sigterm"
+        assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", sigterm_at_step_3) == 143
         assert signal.getsignal(signal.SIGTERM) is own_handler  # in place again after the fit
     finally:
         signal.signal(signal.SIGTERM, before)
