@@ -40,10 +40,9 @@ class AgreedSigterm(Callback):
         self.launcher = None
         self.handler_before = None  # the process's own SIGTERM handler before the fit (submitit's, a user's)
         self.stopping = False  # the ranks agreed to stop after this step
-        # DDP: this rank's flag on the device, the last step's agreed flag on the host, and its copy's CUDA event
-        self._flag: torch.Tensor | None = None
-        self._host_flag = torch.zeros(())
-        self._copied: torch.cuda.Event | None = None
+        # DDP, from a fit's first step: this rank's flag on the device, the last step's agreed flag on the host, and
+        # the CUDA event of its copy there (None on a CPU)
+        self._agreement: tuple[torch.Tensor, torch.Tensor, torch.cuda.Event | None] | None = None
 
     def setup(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule, stage: str) -> None:
         self.handler_before = signal.getsignal(signal.SIGTERM)  # before Lightning installs its own, after this hook
@@ -53,7 +52,7 @@ class AgreedSigterm(Callback):
 
     def on_train_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
         self.take_over(trainer)
-        self._flag = None  # nothing agreed yet in this fit
+        self._agreement = None  # nothing agreed yet in this fit
         if trainer.received_sigterm:  # Lightning's handler got one first, on this rank: the ranks agree on it after
             #                           the first step (not raised on this rank alone)
             self.signalled, trainer._signal_connector.received_sigterm = True, False
@@ -84,21 +83,19 @@ class AgreedSigterm(Callback):
         flag of the step before (False at the first step): that copy was queued a whole step ago, so reading it
         does not wait for this step's GPU work. The flag lives on the device and is set there by a kernel, as
         making a tensor from a Python number on a GPU would wait for the GPU."""
-        cuda = device.type == "cuda"
-        if self._flag is None:  # the first step: nothing agreed yet
-            self._flag = torch.zeros((), device=device)
-            self._host_flag = torch.zeros((), pin_memory=cuda)
-            self._copied = torch.cuda.Event() if cuda else None
-            agreed = False
-        else:
-            if self._copied is not None:
-                self._copied.synchronize()
-            agreed = bool(self._host_flag)
-        self._flag.fill_(float(self.signalled))
-        torch.distributed.all_reduce(self._flag, op=torch.distributed.ReduceOp.MAX)
-        self._host_flag.copy_(self._flag, non_blocking=True)
-        if self._copied is not None:
-            self._copied.record()
+        if self._agreement is None:  # the first step: nothing agreed yet
+            cuda = device.type == "cuda"
+            self._agreement = (torch.zeros((), device=device), torch.zeros((), pin_memory=cuda),
+                               torch.cuda.Event() if cuda else None)
+        flag, host_flag, copied = self._agreement
+        if copied is not None:
+            copied.synchronize()  # returns at once before its first record
+        agreed = bool(host_flag)  # 0 before the first copy
+        flag.fill_(float(self.signalled))
+        torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+        host_flag.copy_(flag, non_blocking=True)
+        if copied is not None:
+            copied.record()
         return agreed
 
     def on_validation_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
