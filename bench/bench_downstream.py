@@ -51,6 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.cli import at_least  # noqa: E402
+from finetune.termination import Terminated  # noqa: E402
 
 TASK = "metaworld_drawer_close"  # without --from-run: Meta-World's scripted expert makes the data free
 ENV = dict(action_repeat=2, time_limit=100, fast_render=True)
@@ -313,14 +314,19 @@ def main() -> int:
         plans[f"imitation{user_tag}"] = {**IMITATION, "demos": ids["demos"], "steps": args.imitation_steps,
                                     "eval_every": max(2000, args.imitation_steps // 5), "checkpoint_every": 2000,
                                     **overrides}
-    if not args.report:
-        for name, settings in plans.items():
+    status = 0
+    try:
+        for name, settings in ({} if args.report else plans).items():
             run(name, settings, args)
+    except Terminated as where:  # e.g. a `timeout` around the call: the runs so far are still reported
+        print(f"bench_downstream: {name} terminated (SIGTERM) at {where}; {args.logdir / name} keeps its checkpoint "
+              "of that moment: the same command goes on from there", flush=True)
+        status = 143
     names = args.runs if args.report and args.runs else list(plans)
     report(args, names, references(args, args.eval_episodes, args.seed + 10_000))
-    if args.final_episodes:
+    if args.final_episodes and not status:
         final_report(args, names)
-    return 0
+    return status
 
 
 if __name__ == "__main__":

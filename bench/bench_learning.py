@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import describe_machine  # noqa: E402
 from finetune.config import load_config, parse_override  # noqa: E402
+from finetune.termination import Terminated  # noqa: E402
 from finetune.train import train  # noqa: E402
 
 # small enough for a shared CPU: ~1 update/s on one loaded core
@@ -167,7 +168,7 @@ def make_export(logdir: Path, steps: int, gpu: bool) -> Path:
     return export
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--gpu", action="store_true", help="Table 3 sizes on a CUDA device (GPU_SETTINGS)")
     parser.add_argument("--task", help="default: dmc_cartpole_swingup (CPU), dmc_cheetah_run (--gpu)")
@@ -186,7 +187,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.plot:
         report(args.plot, args.out or args.plot[0] / "learning_curve.png")
-        return
+        return 0
 
     if args.make_export is not None:
         if args.agent != "hauwm" or args.pretrained:
@@ -205,13 +206,19 @@ def main() -> None:
     print(f"machine: {describe_machine(cfg.device)}")
     print(f"settings: task {args.task}, agent {args.agent}, budget {args.minutes} min, "
           f"config { {key: getattr(cfg, key) for key in (*settings, 'layer_norm')} }", flush=True)
-    start = time.perf_counter()
-    while time.perf_counter() - start < args.minutes * 60:
-        train(cfg, args.pretrained, progress=False)
-        print(f"{(time.perf_counter() - start) / 60:.1f} min: {cfg.steps} env steps", flush=True)
-        cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)
+    start, status = time.perf_counter(), 0
+    try:
+        while time.perf_counter() - start < args.minutes * 60:
+            train(cfg, args.pretrained, progress=False)
+            print(f"{(time.perf_counter() - start) / 60:.1f} min: {cfg.steps} env steps", flush=True)
+            cfg = dataclasses.replace(cfg, steps=cfg.steps + args.chunk)
+    except Terminated as where:  # e.g. a `timeout` around the call: the evaluations so far are still reported
+        print(f"bench_learning: terminated (SIGTERM) at {where}; {logdir} keeps the run's checkpoint of that moment: "
+              "the same command goes on from there", flush=True)
+        status = 143
     report([logdir], args.out or logdir / "learning_curve.png", (time.perf_counter() - start) / 60)
+    return status
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

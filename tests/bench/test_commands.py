@@ -8,8 +8,10 @@ not there. The figures themselves are bench output, never asserted (they depend 
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -90,3 +92,24 @@ def test_bench_learning_starts_a_new_run_and_reports_it(tmp_path):
                       str(tmp_path / "run"), *[arg for setting in settings for arg in ("--set", setting)], timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "random policy:" in done.stdout and (tmp_path / "run" / "learning_curve.png").is_file()
+
+
+def test_bench_learning_stopped_by_sigterm_reports_the_evaluations_so_far(tmp_path):
+    """A GPU call wraps the learning check in `timeout`: its SIGTERM must end the run with its checkpoint and still
+    print the table and draw the curve of the evaluations made, exit status 143 (not a traceback, as on 2026-11-26)."""
+    settings = ["threads=1", "prefill=50", "eval_every=100", "eval_episodes=1", "time_limit=25", "batch_size=4",
+                "seq_len=8"]
+    run = tmp_path / "run"
+    command = [sys.executable, str(REPO / "bench" / "bench_learning.py"), "--minutes", "10", "--chunk", "100000",
+               "--logdir", str(run), *[arg for setting in settings for arg in ("--set", setting)]]
+    with subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as bench:
+        deadline = time.monotonic() + 240
+        while not (run / "eval.csv").is_file() or len((run / "eval.csv").read_text().splitlines()) < 3:
+            assert bench.poll() is None and time.monotonic() < deadline, bench.stderr.read()[-3000:]
+            time.sleep(0.2)
+        bench.send_signal(signal.SIGTERM)
+        out, err = bench.communicate(timeout=240)
+    assert bench.returncode == 143, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert "bench_learning: terminated (SIGTERM) at env step " in out and "random policy:" in out
+    assert (run / "checkpoint.pt").is_file() and (run / "learning_curve.png").is_file()
