@@ -8,6 +8,7 @@ import logging
 import os
 import pickle
 import shutil
+import warnings
 from pathlib import Path
 
 import pytest
@@ -417,9 +418,12 @@ def test_16_mixed_asked_on_a_cpu_trains_in_bf16_mixed_with_float32_distributions
     """The GPU's 16-mixed path has a CPU equivalent: the CLI switches to bf16-mixed, says so, and training
     stays finite with the distribution parameters in float32 under autocast."""
     root = tmp_path / "bf16"
-    assert fit(built_shards, root, "--trainer.precision", "16-mixed", "--trainer.max_steps", "3",
-               "--trainer.val_check_interval", "3") == 0
+    with warnings.catch_warnings(record=True) as caught:
+        assert fit(built_shards, root, "--trainer.precision", "16-mixed", "--trainer.max_steps", "3",
+                   "--trainer.val_check_interval", "3", "--trainer.enable_model_summary", "true") == 0
     assert "using bf16-mixed on CPU" in capsys.readouterr().err
+    # Lightning's summary calls its size in 32 bits an estimate under mixed precision; the weights are float32
+    assert not [str(w.message) for w in caught if "not supported by the model summary" in str(w.message)]
     losses = scalars(root, "train/loss")
     assert len(losses) == 3 and all(torch.isfinite(torch.tensor(losses)))
     assert scalars(root, "train/scaler_skips")[-1] == scalars(root, "train/nonfinite_steps")[-1] == 0
