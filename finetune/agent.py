@@ -25,16 +25,6 @@ from finetune.behavior import ActorCritic
 from finetune.config import FinetuneConfig
 from finetune.world_model import DualStreamWorldModel, Latent, RewardFn, no_param_grads
 
-COMPILE_MODES = ("default", "reduce-overhead")
-
-
-def resolve_compile(setting: str, device: torch.device) -> str | None:
-    """The `compile` setting → a torch.compile mode or None (eager): "auto" is CUDA graphs on CUDA, eager on CPU."""
-    if setting == "auto":
-        return "reduce-overhead" if device.type == "cuda" else None
-    return None if setting == "off" else setting
-
-
 class DivergedError(FloatingPointError):
     """The actor gave a non-finite action: the agent's weights (or the latents they make) went NaN or inf."""
 
@@ -75,8 +65,8 @@ class Agent(nn.Module):
 
         Compiling happens lazily, on the first update and the first action (a minute or more at Table 3 sizes).
         """
-        if mode is not None and mode not in COMPILE_MODES:
-            raise ValueError(f"compile mode must be one of {COMPILE_MODES} or None, got {mode!r}")
+        if mode not in (None, "default", "reduce-overhead"):
+            raise ValueError(f"compile mode must be default, reduce-overhead or None, got {mode!r}")
         self.compile_mode = mode
         eager = self._eager_regions()
         self._regions = eager if mode is None else {name: torch.compile(fn, mode=mode) for name, fn in eager.items()}

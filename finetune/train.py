@@ -25,13 +25,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from finetune.agent import Agent, resolve_compile
+from finetune.agent import Agent
 from finetune.config import FinetuneConfig, FinetuneError, step_unit
 from finetune.logger import Logger
 from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
 from finetune.run_dir import CHECKPOINT, Fingerprint, exclusive, keep_best, resume, run_fingerprint, save_checkpoint
 from finetune.termination import StopRequest, Terminated, terminable
+from model.compiling import compile_mode
 
 ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this (env 0: the seed a single env gets)
 HELD_OUT_SEED = 1_000_000_000  # `hauwm finetune evaluate` plays from the run's seed + this: an env seed the run's
@@ -80,7 +81,7 @@ def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | N
             agent = agent_class(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
         except ValueError as error:  # sizes of the config that do not fit the export
             raise FinetuneError(f"--pretrained {pretrained}: {error}") from None
-    agent.set_compile(resolve_compile(cfg.compile, device))
+    agent.set_compile(compile_mode(cfg.compile, device))
     return agent
 
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from typing import Any, Literal
+from typing import Any
 
 import lightning as L
 import torch
@@ -36,6 +36,7 @@ import torch.distributed as dist
 from lightning.pytorch.utilities import rank_zero_info
 from torch import nn
 
+from model.compiling import CompileSetting, compile_mode
 from model.config import ConfigError, WorldModelConfig, saved_settings
 from model.evaluation import horizon_metrics, horizon_sums
 from model.losses import balanced_kl, disagreement, hcu_loss, mean_over_jumps, reconstruction_nll
@@ -92,20 +93,13 @@ def upgrade_checkpoint(checkpoint: dict) -> None:
             group["fused"] = True
 
 
-CompileMode = Literal["off", "default", "reduce-overhead"]
-
-
-def compiled(function: Callable, mode: CompileMode, device: torch.device) -> Callable:
-    """`function` as torch.compile builds it for `mode` on `device` (itself for "off"); static shapes (dynamic=False).
-
-    "reduce-overhead" (inductor + CUDA graphs) needs a GPU: elsewhere it falls back to inductor's default mode.
-    """
-    if mode == "off":
-        return function
-    if mode == "reduce-overhead" and device.type != "cuda":
-        rank_zero_info(f"model.compile reduce-overhead needs CUDA graphs (a GPU); compiling with mode default on {device}")
-        mode = "default"
-    return torch.compile(function, mode=mode, dynamic=False)
+def compiled(function: Callable, setting: CompileSetting, device: torch.device) -> Callable:
+    """`function` as torch.compile builds it for the `compile` setting on `device` (model/compiling.py; itself
+    where that is eager); static shapes (dynamic=False)."""
+    mode = compile_mode(setting, device)
+    if setting == "reduce-overhead" and mode != setting:
+        rank_zero_info(f"model.compile reduce-overhead needs CUDA graphs (a GPU); compiling with mode {mode} on {device}")
+    return function if mode is None else torch.compile(function, mode=mode, dynamic=False)
 
 
 def mean_over_ranks(value: torch.Tensor) -> torch.Tensor:
@@ -141,7 +135,7 @@ class PretrainModule(L.LightningModule):
         grad_clip: float = 100.0,
         noise_seed: int = 0,
         # engineering: how the step runs, not what it computes
-        compile: CompileMode = "off",
+        compile: CompileSetting = "off",
     ):
         """The world model trained on eq. 2's ELBO + λ · eq. 3's HCU loss, λ following eq. 4.
 
@@ -156,7 +150,8 @@ class PretrainModule(L.LightningModule):
             kl_scale: the weight β of the KL term of eq. 2
             grad_clip: the world model's global gradient-norm clip
             noise_seed: seed of the posterior samples' noise (one draw per step and rank: exact resume)
-            compile: torch.compile of the step: off, default (inductor), reduce-overhead (inductor + CUDA graphs)
+            compile: torch.compile of the step: off, default (inductor), reduce-overhead (inductor + CUDA graphs),
+                auto (reduce-overhead on a GPU, off elsewhere)
         """
         super().__init__()
         if isinstance(world_model, Mapping):  # load_from_checkpoint of a module built without the CLI passes the dict
@@ -250,7 +245,7 @@ class PretrainModule(L.LightningModule):
         world_model_opt, dual_opt = self.optimizers()
         log_now = self.trainer.log_every_n_steps > 0 and (self.global_step + 1) % self.trainer.log_every_n_steps == 0
         noise = self.noise(batch["gaps"], self.global_step, stream=0)
-        if self.hparams.compile != "off":
+        if compile_mode(self.hparams.compile, self.device) == "reduce-overhead":
             torch.compiler.cudagraph_mark_step_begin()  # the last step's graph outputs are no longer read
         terms = self.step_losses(batch["frames"], batch["gaps"], batch["num_frames"], noise)
         world_model_opt.zero_grad()

@@ -21,10 +21,10 @@ import torch._dynamo
 import torch._inductor.config
 from torch._dynamo.utils import counters
 
-from finetune.agent import resolve_compile
 from finetune.imitation import ImitationAgent
 from finetune.offline import OfflineAgent
 from finetune.pretrained import k1_embedding, load_pretrained
+from model.compiling import compile_mode
 from test_dual_stream import ACTION_DIM, make_agent, random_batch  # noqa: I001 (tests/finetune/test_dual_stream.py)
 
 PARADIGMS = {"offline": (OfflineAgent, {"model_heads": 3}), "imitation": (ImitationAgent, {})}
@@ -114,7 +114,12 @@ def test_inductor_update_agrees_with_eager(export_dir, tiny_config, fixed_noise,
 
 
 def test_compile_setting_resolves_per_device():
-    assert resolve_compile("auto", torch.device("cuda")) == "reduce-overhead"
-    assert resolve_compile("auto", torch.device("cpu")) is None
-    assert resolve_compile("off", torch.device("cuda")) is None
-    assert resolve_compile("default", torch.device("cpu")) == "default"
+    """One reading of the setting for fine-tuning's `compile` and pre-training's `model.compile`."""
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    assert compile_mode("auto", cuda) == "reduce-overhead" and compile_mode("auto", cpu) is None
+    assert compile_mode("off", cuda) is None and compile_mode("off", cpu) is None
+    assert compile_mode("default", cpu) == compile_mode("default", cuda) == "default"
+    assert compile_mode("reduce-overhead", cuda) == "reduce-overhead"
+    assert compile_mode("reduce-overhead", cpu) == "default"  # CUDA graphs need a GPU
+    with pytest.raises(ValueError, match="compile must be one of auto, off, default, reduce-overhead, got 'fast'"):
+        compile_mode("fast", cpu)

@@ -48,6 +48,7 @@ def test_reduce_overhead_falls_back_to_default_off_the_gpu(monkeypatch, caplog):
     assert modes == [("default", False)]
     assert "needs CUDA graphs (a GPU); compiling with mode default on cpu" in caplog.text
     assert compiled(len, "off", torch.device("cpu")) is len and len(modes) == 1
+    assert compiled(len, "auto", torch.device("cpu")) is len and len(modes) == 1  # auto: CUDA graphs on a GPU only
 
 
 class Losses(L.Callback):
