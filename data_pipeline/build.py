@@ -13,6 +13,7 @@ and rebuilds the rest, byte-identically. When every shard of every part is prese
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 import time
@@ -203,7 +204,7 @@ def write_shard(config: BuildConfig, plan: ShardPlan, results, digest: str, prog
     """Write one shard from the results of its valid clips, in order; returns its stats."""
     extension = ENCODINGS[config.encoding]
     partial = config.out / f".{plan.name}.tar.partial"
-    errors, frame_counts, clips, frames = [], Counter(), 0, 0
+    errors, frame_counts, clips, frames, by_opencv = [], Counter(), 0, 0, 0
     with open(partial, "wb") as file, open_writer(file) as tar:
         for record in plan.records:
             if fault := id_fault(record.id):
@@ -216,12 +217,14 @@ def write_shard(config: BuildConfig, plan: ShardPlan, results, digest: str, prog
                 continue
             add_clip(tar, _metadata(record, result), result.frames_member, extension)
             clips, frames = clips + 1, frames + result.num_frames
+            by_opencv += result.decoder == "opencv"
             frame_counts[str(result.num_frames)] += 1
     tar_path = config.out / f"{plan.name}.tar"
     stats = {"name": plan.name, "split": plan.split, "index": plan.index, "settings_digest": digest,
              "planned": [r.id for r in plan.records], "clips": clips, "frames": frames,
              "bytes": partial.stat().st_size, "sha256": _sha256(partial),
-             "frame_counts": dict(sorted(frame_counts.items(), key=lambda kv: int(kv[0]))), "errors": errors}
+             "frame_counts": dict(sorted(frame_counts.items(), key=lambda kv: int(kv[0]))), "errors": errors,
+             "decoded_by_opencv": by_opencv}
     os.replace(partial, tar_path)
     _write_json_atomic(config.out / f"{plan.name}.stats.json", stats)  # last: marks the shard complete
     return stats
@@ -323,6 +326,9 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
             f"{new_frames / elapsed:.0f} frames/s")
     log(f"part {config.part}: {total - len(failed)} clips in shards, {len(failed)} failed "
         f"({', '.join(f'{r}: {n}' for r, n in sorted(Counter(e['reason'] for e in failed).items())) or 'none'})")
+    if by_opencv := sum(stats.get("decoded_by_opencv", 0) for stats in part_stats):  # stats of older builds: none
+        cause = "decord is not installed" if importlib.util.find_spec("decord") is None else "decord could not open them"
+        log(f"{by_opencv} of the clips in shards were decoded by OpenCV ({cause}), the rest by decord")
     if (again := retryable(failed)) and not config.retry_failed:
         log(f"{len(again)} of the failures may not happen again ({', '.join(sorted(set(e['reason'] for e in again)))}): "
             "once their files are there, re-run with --retry-failed to rebuild the shards they are in")

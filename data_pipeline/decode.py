@@ -2,7 +2,8 @@
 
 decord (one thread: VP9 WebM fails with its default of 0 threads) reads the clip frame by frame until
 the stream ends, so the frame count is the number of frames actually decoded (WebM stores none).
-Where decord cannot open a file, OpenCV tries. `fault_tol=0` makes decord raise instead of silently
+Where decord cannot open a file (or is not installed), OpenCV tries; `DecodedClip.decoder` says which
+decoded the clip, and the shard builder counts OpenCV's. `fault_tol=0` makes decord raise instead of silently
 repeating frames on corrupt input; a clip that decodes to fewer frames than its container's duration
 declares is corrupt too (truncated, or garbage in the stream). Faults raise `ClipError(reason, detail)`,
 which the shard builder records in `errors.jsonl`; the per-clip timeout lives in `workers.py`.
@@ -35,6 +36,7 @@ class DecodedClip:
     source_width: int
     source_height: int
     fps: float
+    decoder: str  # "decord", or "opencv" where decord could not open the file
 
 
 def resize_frame(frame: np.ndarray, size: int, mode: str) -> np.ndarray:
@@ -122,4 +124,4 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
         raise ClipError("corrupt", decoder_error)
     if len(resized) < min_frames:
         raise ClipError("too-short", f"{len(resized)} frames, fewer than --min-frames {min_frames}")
-    return DecodedClip(np.stack(resized), int(source_width), int(source_height), fps)
+    return DecodedClip(np.stack(resized), int(source_width), int(source_height), fps, backend)

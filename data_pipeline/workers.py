@@ -41,6 +41,7 @@ class ClipResult:
     source_width: int = 0
     source_height: int = 0
     fps: float = 0.0
+    decoder: str = ""  # decode.DecodedClip.decoder
     reason: str = ""
     detail: str = ""
 
@@ -52,7 +53,7 @@ def process_clip(path: Path, settings: DecodeSettings) -> ClipResult:
     except ClipError as error:
         return ClipResult(reason=error.reason, detail=_LOG_PREFIX.sub("", error.detail))
     return ClipResult(encode_frames(clip.frames, settings.encoding, settings.quality), len(clip.frames),
-                      clip.source_width, clip.source_height, round(clip.fps, 3))
+                      clip.source_width, clip.source_height, round(clip.fps, 3), clip.decoder)
 
 
 def _serve(connection: Connection, settings: DecodeSettings) -> None:

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from data_pipeline import workers
+from data_pipeline import decode, workers
 from data_pipeline.build import BuildConfig, BuildError, build, plan_shards
 from data_pipeline.sample_data import BROKEN_KINDS
 from data_pipeline.shard_format import decode_frames
@@ -98,6 +98,26 @@ def test_a_hanging_decoder_is_killed_and_the_build_goes_on(sample_ssv2, clean_an
     errors = [json.loads(line) for line in (tmp_path / "errors.jsonl").read_text().splitlines()]
     assert [(e["id"], e["reason"]) for e in errors] == [(hang_id, "timeout")]
     assert manifest["splits"]["validation"]["clips"] == 2 and status == 0
+
+
+def test_clips_that_decord_cannot_open_are_decoded_by_opencv_and_counted(sample_ssv2, clean_annotations, tmp_path,
+                                                                        monkeypatch):
+    real = decode._decode_decord
+    refused = json.loads((clean_annotations / "something-something-v2-validation.json").read_text())[1]["id"]
+
+    def refuses_one_clip(path):
+        if path.stem == refused:
+            raise RuntimeError("cannot open")
+        return real(path)
+
+    monkeypatch.setattr(decode, "_decode_decord", refuses_one_clip)  # the forked workers inherit it
+    config = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
+                         splits=["validation"], workers=2)
+    lines = []
+    manifest, status = build(config, log=lines.append)
+    assert status == 0 and manifest["splits"]["validation"]["clips"] == 3
+    assert "1 of the clips in shards were decoded by OpenCV (decord could not open them), the rest by decord" in lines
+    assert sum(json.loads(path.read_text())["decoded_by_opencv"] for path in tmp_path.glob("*.stats.json")) == 1
 
 
 def decode_with_opencv(path, size):
