@@ -20,7 +20,7 @@ interleave) and no validation. Steps/s over the steps after the warm-up (whole e
   (b) short epochs: the sample data's 258 train clips (8 steps an epoch at batch 32, 4 workers: a new
       epoch every 8 steps, served by the same persistent workers; before them, the workers started again);
 with the skipped steps by cause (GradScaler's overflows, non-finite steps); on a GPU (a) again with the config's
-own workers (ssv2.yaml: 8). Before the fits, the fit's train loader alone (no model) on the same shards and
+own workers (ssv2.yaml: 8) and with batches copied from ordinary memory (--data.pin_memory false). Before the fits, the fit's train loader alone (no model) on the same shards and
 workers: the batches/s it gives is the most steps/s the fit could reach with them. Then the bare step fed by
 that loader (long epochs; on a GPU with pinned memory and without): near the bare step, Lightning's machinery is
 what the fit adds; near the fit, the loader's hand-over in the training process is. On the CPU also the issue's CPU
@@ -347,11 +347,9 @@ def fit_loader(shards: Path, data: dict, workers: int, worker_priority: str,
     """The fit's own train loader (ShardDataModule's: persistent workers, pinned memory on a GPU unless not
     `pinned`) with its DataModule."""
     datamodule = ShardDataModule(**{**data, "shards": str(shards), "num_workers": workers,
-                                    "worker_priority": worker_priority})
+                                    "worker_priority": worker_priority, "pin_memory": None if pinned else False})
     datamodule.setup("fit")
-    loader = datamodule.train_dataloader()
-    loader.pin_memory = loader.pin_memory and pinned
-    return datamodule, loader
+    return datamodule, datamodule.train_dataloader()
 
 
 def device_batches(datamodule: ShardDataModule, loader: DataLoader, device: torch.device) -> Iterator[dict]:
@@ -387,9 +385,10 @@ def fit_warm_up(per_epoch: int, total: int) -> int:
 
 
 def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max_steps: int, precision: str,
-             log_every: int, root: Path, device: torch.device, diagnose: bool = False) -> dict:
+             log_every: int, root: Path, device: torch.device, diagnose: bool = False, pinned: bool = True) -> dict:
     """`hauwm pretrain fit` (model.cli's LightningCLI) on one device → steps/s after the warm-up and more; with
-    `diagnose`, StepDiagnosis's findings too (its windows slow the fit: its steps/s is not a figure)."""
+    `diagnose`, StepDiagnosis's findings too (its windows slow the fit: its steps/s is not a figure); not `pinned`:
+    with --data.pin_memory false."""
     reset(device)
     args = ["fit", "--config", str(config), "--data.shards", str(shards), "--data.num_workers", str(workers),
             "--data.worker_priority", worker_priority,
@@ -397,7 +396,7 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
             "--trainer.log_every_n_steps", str(log_every),
             "--trainer.strategy", "auto", "--trainer.limit_val_batches", "0", "--trainer.enable_progress_bar",
             "false", "--trainer.enable_model_summary", "false", "--trainer.default_root_dir", str(root),
-            "--trainer.callbacks+=bench_gpu.StepTimer"]
+            "--trainer.callbacks+=bench_gpu.StepTimer"] + ([] if pinned else ["--data.pin_memory", "false"])
     if diagnose:
         args.append("--trainer.callbacks+=bench_gpu.StepDiagnosis")
     cli = lightning_cli(args)
@@ -516,20 +515,22 @@ def main() -> None:
     per_epoch = len(SequenceDataset(shard_set(shards, "train"), batch_size=batch_size, seq_len=fit_length,
                                     k_max=k_max, num_workers=workers))  # short epochs: warm-up + about half as many
     short_steps = whole_epochs(FIT_WARM_UP, per_epoch) + whole_epochs(fit_steps // 2, per_epoch)  # timed steps
-    runs = [("(a) long epochs", long_epochs, workers, fit_steps)]
+    runs = [("(a) long epochs", long_epochs, workers, fit_steps, True)]  # (label, shards, workers, steps, pinned)
     if not gpu:
-        runs.append(("(a) long epochs", long_epochs, 0, fit_steps))
-    runs.append(("(b) short epochs", shards, workers, short_steps))
+        runs.append(("(a) long epochs", long_epochs, 0, fit_steps, True))
+    runs.append(("(b) short epochs", shards, workers, short_steps, True))
     config_workers = loaded["data"]["num_workers"]
     if gpu and config_workers != workers:  # what a user's fit gets (ssv2.yaml: 8)
-        runs.append(("(a) long epochs", long_epochs, config_workers, fit_steps))
+        runs.append(("(a) long epochs", long_epochs, config_workers, fit_steps, True))
+    if gpu:  # batches copied from ordinary memory (--data.pin_memory false): one bench showed the fed step faster
+        runs.append(("(a) long, unpinned", long_epochs, workers, fit_steps, False))
 
     reference_mode = compile_mode if gpu else "off"
     reference = bare.get((fit_length, reference_mode))
     print(f"\n{'loader alone':<18} {'workers':>7} {'batches/epoch':>13} {'batches/s':>10} {'× bare':>9}"
           "  (the fit's train loader, no model, batches copied to the device)")
-    for label, directory, fit_workers, max_steps in runs:
-        if fit_workers == 0:
+    for label, directory, fit_workers, max_steps, pinned in runs:
+        if fit_workers == 0 or not pinned:  # the loader alone copies as the pinned fit does
             continue
         result = loader_alone(directory, loaded["data"], fit_workers, worker_priority, max_steps, device)
         ratio = f" {result['batches_per_s'] / reference['steps_per_s']:8.2f}×" if reference is not None else ""
@@ -553,9 +554,9 @@ def main() -> None:
         reference = bare_steps(settings, itertools.cycle(fit_batches), "off", steps, device)
     ratios: dict[tuple[str, int], list[float]] = {}  # (run, workers) → each round's fit / bare steps/s
     for round_index in range(rounds):
-        for index, (label, directory, fit_workers, max_steps) in enumerate(runs):
+        for index, (label, directory, fit_workers, max_steps, pinned) in enumerate(runs):
             result = real_fit(config, directory, fit_workers, worker_priority, max_steps, settings["precision"],
-                              log_every, work / f"fit-{round_index}-{index}", device)
+                              log_every, work / f"fit-{round_index}-{index}", device, pinned=pinned)
             ratio_text = ""
             if reference is not None:
                 after = reference if gpu else bare_steps(settings, itertools.cycle(fit_batches), "off", steps,

@@ -18,6 +18,7 @@ from __future__ import annotations
 import warnings
 
 import lightning
+import torch
 from lightning.pytorch.utilities import rank_zero_info
 
 from .loader import LoaderError, SequenceDataset, check_worker_priority, make_dataloader, shard_set
@@ -40,7 +41,7 @@ class ShardDataModule(lightning.LightningDataModule):
     def __init__(self, shards: str | None = None, train_split: str = "train", val_split: str = "validation",
                  batch_size: int = 32, seq_len: int = 16, k_max: int = 5, num_workers: int = 2,
                  shuffle_buffer: int = 256, seed: int = 0, val_batches: int = 8, shard_url: str | None = None,
-                 timeout: float = 600.0, worker_priority: str = "normal"):
+                 timeout: float = 600.0, worker_priority: str = "normal", pin_memory: bool | None = None):
         """Batches of variable-gap sequences from a shard directory, for training and validation.
 
         Args:
@@ -60,6 +61,8 @@ class ShardDataModule(lightning.LightningDataModule):
                 its shard
             worker_priority: normal, or idle for workers that use only the cores the training step leaves free
                 (Linux; for CPU-only runs on few cores, see `loader.check_worker_priority`)
+            pin_memory: copy each batch into page-locked memory for its copy to the GPU (torch's pinning thread);
+                unset: pin where a CUDA GPU is visible. false copies from ordinary memory instead
         """
         if not shards:
             raise LoaderError("no shard directory: pass --data.shards DIR (built by `hauwm shards build`)")
@@ -72,6 +75,9 @@ class ShardDataModule(lightning.LightningDataModule):
         if seq_len < 2:
             raise LoaderError(f"--data.seq_len must be at least 2 (a sequence must hold a gap k for the model to learn "
                               f"from), got {seq_len}")
+        if pin_memory and not torch.cuda.is_available():
+            raise LoaderError("--data.pin_memory true: no CUDA GPU is visible to pin batches for; leave it unset "
+                              "(batches are pinned where a GPU is there)")
         if not 0 < timeout <= MAX_TIMEOUT:  # the OS cannot wait for 1e300 s: an OverflowError at the first batch
             raise LoaderError(f"--data.timeout (seconds a worker may take for a batch) must be positive and at most "
                               f"{MAX_TIMEOUT:g} (a day), got {timeout}")
@@ -119,11 +125,12 @@ class ShardDataModule(lightning.LightningDataModule):
         if self.trainer is not None and not any(isinstance(c, SetEpoch) for c in self.trainer.callbacks):
             warnings.warn("ShardDataModule: add data_pipeline.SetEpoch() to the Trainer's callbacks, or every "
                           "epoch reads the shards in the same order", stacklevel=2)
-        loader = make_dataloader(self.train_set, self.hparams.timeout, self.hparams.worker_priority)
+        loader = make_dataloader(self.train_set, self.hparams.timeout, self.hparams.worker_priority,
+                                 self.hparams.pin_memory)
         if self.trainer is not None:  # batches of this epoch trained on, for a checkpoint's data position
             loader.batches_done = lambda: self.trainer.fit_loop.epoch_loop.batch_progress.current.processed
             loader.epoch_ended = lambda: self.trainer.fit_loop.epoch_loop.batch_progress.is_last_batch
         return loader
 
     def val_dataloader(self):
-        return make_dataloader(self.val_set, self.hparams.timeout, self.hparams.worker_priority)
+        return make_dataloader(self.val_set, self.hparams.timeout, self.hparams.worker_priority, self.hparams.pin_memory)

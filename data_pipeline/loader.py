@@ -588,19 +588,20 @@ def _death_cause(exitcode: int | None) -> str:
 PREFETCH = 2  # batches each worker has in flight (torch's default prefetch_factor)
 
 
-def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0,
-                    worker_priority: str = "normal") -> ResumableDataLoader:
+def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0, worker_priority: str = "normal",
+                    pin_memory: bool | None = None) -> ResumableDataLoader:
     """Batches come collated from the dataset, so `batch_size=None`. With workers, they start once and stay for
     the whole run (`persistent_workers`; each epoch's iterator reads the position from shared memory), a
     worker that gives no batch for `timeout` seconds is reported as stalled, `worker_priority` is their
     scheduling class (`check_worker_priority`), and each places its batches in PREFETCH + 1 shared-memory slots
-    (batch_slots.py: one more than it has in flight, so the next is free by the time it is asked for)."""
+    (batch_slots.py: one more than it has in flight, so the next is free by the time it is asked for). Batches
+    are pinned for the copy to a GPU where `pin_memory` says so (None: where CUDA is available)."""
     check_worker_priority(worker_priority)
     workers = dataset.num_workers > 0
     loader = ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
                                  worker_init_fn=partial(_init_worker, worker_priority, os.getpid()),
                                  persistent_workers=workers, timeout=timeout if workers else 0,
-                                 pin_memory=torch.cuda.is_available(),
+                                 pin_memory=torch.cuda.is_available() if pin_memory is None else pin_memory,
                                  prefetch_factor=PREFETCH if workers else None)
     loader.worker_priority = worker_priority
     if workers:  # the context torch starts the workers with (its default: the platform's)

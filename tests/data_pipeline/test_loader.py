@@ -254,10 +254,20 @@ def test_ctrl_c_is_left_to_the_training_process(built_shards):
     (dict(batch_size=0), "--data.batch_size must be at least 1, got 0"),
     (dict(shuffle_buffer=-4), "--data.shuffle_buffer must be at least 0, got -4"),
     (dict(seed=-1), "--data.seed must be at least 0, got -1"),
+    pytest.param(dict(pin_memory=True), "--data.pin_memory true: no CUDA GPU is visible",
+                 marks=pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU pins")),
 ])
 def test_bad_loader_settings_are_refused_with_the_flag(built_shards, settings, message):
     with pytest.raises(LoaderError, match=message):
         ShardDataModule(str(built_shards), **settings)
+
+
+@pytest.mark.parametrize("pin_memory", [None, False])
+def test_batches_are_pinned_where_a_gpu_is_there_unless_turned_off(built_shards, pin_memory):
+    module = ShardDataModule(str(built_shards), batch_size=2, seq_len=8, num_workers=0, pin_memory=pin_memory)
+    module.setup("fit")
+    expected = torch.cuda.is_available() if pin_memory is None else False
+    assert module.train_dataloader().pin_memory is expected and module.val_dataloader().pin_memory is expected
 
 
 def test_persistent_workers_follow_a_resume_position_set_between_epochs(built_shards):
