@@ -29,6 +29,8 @@ target: the fit with 2 workers against the bare step loop on the same batches (a
 A shared CPU host drifts by more than that margin within minutes, so on the CPU every fit is bracketed: the
 bare eager loop is timed again right after it, each fit is compared with the mean of the bare runs just before
 and just after, and the whole sequence runs --rounds times (default 3) with the median ratio printed last.
+Then each fit by the host's clock: the mean and median time inside its steps and between them, and its slow steps
+(an interval over twice the median: a logging step, a late batch, an epoch's end) with what they add to the mean.
 Last, where a fit step's time goes (StepDiagnosis, one more short fit on long epochs): the operations that make
 the host wait for the GPU, by call site; the host's time inside and between steps; a profiled window.
 Shards: built from `hauwm shards sample-data --clips 344` in a temporary directory, or --shards DIR.
@@ -83,16 +85,19 @@ PROFILED_STEPS = 10  # bare steps profiled after the timed ones (a GPU): the dev
 
 
 class StepTimer(L.Callback):
-    """The wall-clock time at the start of training and at the end of every training batch, and the CPU time
-    of the training process (all its threads) at each batch end; the device is synchronised at the last step's
+    """The wall-clock time at the start of training and at the start and end of every training batch, and the CPU
+    time of the training process (all its threads) at each batch end; the device is synchronised at the last step's
     end, so the last time covers all queued work, and not the last.ckpt the fit writes after it (the
     checkpoint callbacks run after this one)."""
 
     def __init__(self):
-        self.start, self.times, self.cpu_times = 0.0, [], []
+        self.start, self.starts, self.times, self.cpu_times = 0.0, [], [], []
 
     def on_train_start(self, trainer, pl_module):
         self.start = time.perf_counter()
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.starts.append(time.perf_counter())
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         if trainer.global_step >= trainer.max_steps:
@@ -375,6 +380,21 @@ def loader_alone(shards: Path, data: dict, workers: int, worker_priority: str, t
     return {"batches_per_s": (total - warm) / (time.perf_counter() - times[warm - 1]), "per_epoch": len(loader)}
 
 
+def step_anatomy(starts: list[float], ends: list[float], warm: int) -> dict:
+    """The timed steps (from `warm` on) by the host's clock, in ms: inside a step (batch start to end: training_step
+    and its hooks) and between steps (the loop, the next batch, its copy), mean and median; and the slow steps,
+    whose interval from the last step's end is over twice the median, with what they add to the mean interval.
+    Means above medians say that a few steps (logging, a late batch, a pause) take the time, not every step."""
+    inside = [1000 * (end - start) for start, end in zip(starts[warm:], ends[warm:])]
+    between = [1000 * (start - end) for start, end in zip(starts[warm:], ends[warm - 1:])]
+    intervals = [1000 * (end - before) for end, before in zip(ends[warm:], ends[warm - 1:])]
+    typical = statistics.median(intervals)
+    slow = [interval for interval in intervals if interval > 2 * typical]
+    return {"inside": (statistics.fmean(inside), statistics.median(inside)),
+            "between": (statistics.fmean(between), statistics.median(between)),
+            "slow_steps": len(slow), "slow_ms": sum(interval - typical for interval in slow) / len(intervals)}
+
+
 def whole_epochs(steps: int, per_epoch: int) -> int:
     """At least `steps` steps, rounded up to whole epochs."""
     return math.ceil(steps / per_epoch) * per_epoch
@@ -411,6 +431,7 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
     return {"steps_per_s": (len(times) - warm) / (times[-1] - times[warm - 1]), "steps_per_epoch": per_epoch,
             "cpu_ms": 1000 * (cpu_times[-1] - cpu_times[warm - 1]) / (len(times) - warm),
             "timed_steps": len(times) - warm, "first_step_s": times[0] - timer.start,
+            "anatomy": step_anatomy(timer.starts, times, warm),
             "scaler_skips": int(cli.model.scaler_skips), "nonfinite_steps": int(cli.model.nonfinite_steps),
             "peak_gib": peak_memory_gib(device), "diagnosis": by_name.get("StepDiagnosis")}
 
@@ -555,6 +576,7 @@ def main() -> None:
         fit_batches = load_batches(shards, batch_size, fit_length, k_max, 4, device)
         reference = bare_steps(settings, itertools.cycle(fit_batches), "off", steps, device)
     ratios: dict[tuple[str, int], list[float]] = {}  # (run, workers) → each round's fit / bare steps/s
+    anatomies = []  # (run, workers, step_anatomy) of every fit
     for round_index in range(rounds):
         for index, (label, directory, fit_workers, max_steps, pinned) in enumerate(runs):
             result = real_fit(config, directory, fit_workers, worker_priority, max_steps, settings["precision"],
@@ -571,12 +593,20 @@ def main() -> None:
                   f"{result['steps_per_s']:8.2f} {result['first_step_s']:10.1f} {result['scaler_skips']:>12} "
                   f"{result['nonfinite_steps']:>10} {result['peak_gib']:9.2f} {result['cpu_ms']:8.1f}{ratio_text}",
                   flush=True)
+            anatomies.append((label, fit_workers, result["anatomy"]))
 
     kind = "bare compiled step (aim ≥ 0.8×)" if gpu else "bare eager step loop on the same batches (aim ≥ 0.9×)"
     for (label, fit_workers), values in ratios.items():
         shown = ", ".join(f"{ratio:.2f}" for ratio in values)
         print(f"{label}, {fit_workers} workers: {statistics.median(values):.2f}× the {kind}"
               + (f" (median of {shown})" if len(values) > 1 else ""))
+    print(f"\n{'the fits by the host':<18} {'workers':>7} {'inside ms':>13} {'between ms':>13} {'slow steps':>10} "
+          f"{'+ms a step':>10}  (every timed step, mean / median; slow: over twice the median interval, and what they "
+          "add to the mean)")
+    for label, fit_workers, anatomy in anatomies:
+        inside, between = (f"{mean:.2f} / {median:.2f}" for mean, median in (anatomy["inside"], anatomy["between"]))
+        print(f"{label:<18} {fit_workers:>7} {inside:>13} {between:>13} {anatomy['slow_steps']:>10} "
+              f"{anatomy['slow_ms']:10.2f}")
     try:  # last: a profiler failure must not cost the figures above
         diagnosis = real_fit(config, long_epochs, config_workers if gpu else workers, worker_priority,
                              FIT_WARM_UP + StepDiagnosis.SYNC_STEPS + StepDiagnosis.PROFILE_STEPS + 2,

@@ -50,7 +50,7 @@ def test_bench_gpu_runs_on_the_cpu(built_shards):
     shown = done.stdout
     assert shown.startswith("machine: ") and "no GPU" in shown.splitlines()[0]
     for row in ("eager ", "compiled (default)", "loader alone", "bare step fed by the loader", "(a) long epochs",
-                "(b) short epochs",
+                "(b) short epochs", "the fits by the host",
                 "where a fit step's time goes", "host, inside the step", "host operators by own time"):
         assert row in shown, shown
     assert "aim ≥ 0.9×" in shown and "failed (" not in shown
