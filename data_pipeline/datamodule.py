@@ -133,4 +133,5 @@ class ShardDataModule(lightning.LightningDataModule):
         return loader
 
     def val_dataloader(self):
-        return make_dataloader(self.val_set, self.hparams.timeout, self.hparams.worker_priority, self.hparams.pin_memory)
+        hp = self.hparams
+        return make_dataloader(self.val_set, hp.timeout, hp.worker_priority, hp.pin_memory)

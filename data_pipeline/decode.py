@@ -36,7 +36,7 @@ class DecodedClip:
     source_width: int
     source_height: int
     fps: float
-    decoder: str  # "decord", or "opencv" where decord could not open the file
+    decoder: str  # "decord", or "opencv" where decord could not open the file (or is not installed)
 
 
 def resize_frame(frame: np.ndarray, size: int, mode: str) -> np.ndarray:

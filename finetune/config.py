@@ -67,7 +67,7 @@ class FinetuneConfig:
     device: str = "auto"  # "auto" (cuda when available), "cpu" or "cuda"
     threads: int = 0  # torch CPU threads, 0 = torch's default
     # speed (docs/finetuning.md, "Speed"); none of these changes what is learned beyond rounding
-    compile: str = "auto"  # torch.compile of update and acting: auto, off, default, reduce-overhead (model/compiling.py)
+    compile: str = "auto"  # torch.compile of update and acting: auto, off, default, reduce-overhead (compiling.py)
     conv_bf16: bool = False  # bf16 autocast in the convolutional encoder and decoder
     num_envs: int = 1  # training envs; more than 1 steps them in worker processes while the learner trains
     pin_envs: bool = True  # pin those worker processes to CPUs, an equal share of each (finetune/envs/vector.py)

@@ -98,7 +98,8 @@ def compiled(function: Callable, setting: CompileSetting, device: torch.device) 
     where that is eager); static shapes (dynamic=False)."""
     mode = compile_mode(setting, device)
     if setting == "reduce-overhead" and mode != setting:
-        rank_zero_info(f"model.compile reduce-overhead needs CUDA graphs (a GPU); compiling with mode {mode} on {device}")
+        rank_zero_info(f"model.compile reduce-overhead needs CUDA graphs (a GPU); compiling with mode {mode} on "
+                       f"{device}")
     return function if mode is None else torch.compile(function, mode=mode, dynamic=False)
 
 
