@@ -27,7 +27,9 @@ from test_finetune_runs import rows  # noqa: I001 (tests/finetune/test_finetune_
 # per train.csv row. First recorded on main at 073e62e (before num_envs and compile existed; an AMD EPYC with
 # AVX2), which the one-env loop reproduced exactly, also on the Intel Xeon development box; recorded again there
 # when the frozen stream's first step got the gap-0 embedding (the only change: every figure within 0.2%).
-# Another CPU's float rounding may move the losses slightly.
+# Another CPU's kernels round differently: on an AMD EPYC with AVX-512 (torch 2.14.1 and 2.11.0 alike) the last
+# evaluation's return moved 5.7e-5 relative, every other figure less than 3e-6. So figures must agree to 3e-4
+# relative: five times that rounding, and below the 0.2% that even the small change above moved figures by.
 RECORDED = {
     "episodes": [(100, 0.1561575450745078), (200, 0.7060239111946077), (300, 0.2933650531376514),
                  (400, 2.2290965988867066), (500, 0.6437207393343062), (600, 2.804302249963283)],
@@ -49,7 +51,7 @@ def test_one_env_reproduces_the_figures_recorded_before_num_envs_existed(export_
     train(cfg, export_dir, progress=False)
     for kind, recorded in RECORDED.items():
         logged = [tuple(float(row[column]) for column in COLUMNS[kind]) for row in rows(tmp_path / "run" / f"{kind}.csv")]
-        assert logged == [pytest.approx(values, rel=1e-5, abs=1e-9) for values in recorded], kind
+        assert logged == [pytest.approx(values, rel=3e-4, abs=1e-9) for values in recorded], kind
 
 
 def replay_episodes(logdir):
