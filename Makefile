@@ -62,7 +62,7 @@ test-all: install
 
 # Every test on the oldest torch pyproject.toml admits (torch 2.11, torchvision 0.26: the GPU machines' image), in
 # .venv-floor; constraints.txt's other versions, less those that pin torch's own (triton, CUDA, setuptools < 82).
-# Downloads about 3 GB of torch 2.11 CUDA wheels from PyPI the first time (1.5 minutes here); then about 13 minutes of tests on 2 cores.
+# Downloads about 3 GB of torch 2.11 CUDA wheels from PyPI the first time (1.5 minutes here); then 13–21 minutes of tests on 2 cores.
 FLOOR := .venv-floor
 test-floor:
 	@$(MAKE) --no-print-directory system-deps
