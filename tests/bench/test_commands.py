@@ -113,3 +113,31 @@ def test_bench_learning_stopped_by_sigterm_reports_the_evaluations_so_far(tmp_pa
     assert "Traceback" not in err, err[-3000:]
     assert "bench_learning: terminated (SIGTERM) at env step " in out and "random policy:" in out
     assert (run / "checkpoint.pt").is_file() and (run / "learning_curve.png").is_file()
+
+
+def test_bench_downstream_stopped_by_sigterm_reports_the_runs_so_far(tmp_path):
+    """The offline RL and imitation checks of a GPU call run under `timeout` too: its SIGTERM ends the run under
+    way with its checkpoint, and the datasets' references and that run's evaluations are still reported (143)."""
+    from model.config import WorldModelConfig
+    from model.export import export_frozen
+    from model.world_model import WorldModel
+
+    export = export_frozen(WorldModel(WorldModelConfig(cnn_width=8, embed_dim=64, deter=24, stoch=8, hidden=24,
+                                                       ensemble=3, temporal_dim=8)), tmp_path / "export", {})
+    small = ["eval_every=5", "checkpoint_every=5", "batch_size=4", "seq_len=8", "units=32", "hidden=24"]
+    run = tmp_path / "runs" / "offline_lam0"
+    command = [sys.executable, str(REPO / "bench" / "bench_downstream.py"), "--pretrained", str(export), "--logdir",
+               str(tmp_path / "runs"), "--only", "offline", "--updates", "100000", "--lams", "0", "--expert-episodes",
+               "1", "--noisy-episodes", "1", "--demos", "1", "--eval-episodes", "1", "--no-progress",
+               *[arg for setting in small for arg in ("--set", setting)]]
+    with subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as bench:
+        deadline = time.monotonic() + 240
+        while not (run / "eval.csv").is_file() or len((run / "eval.csv").read_text().splitlines()) < 2:
+            assert bench.poll() is None and time.monotonic() < deadline, bench.stderr.read()[-3000:]
+            time.sleep(0.2)
+        bench.send_signal(signal.SIGTERM)
+        out, err = bench.communicate(timeout=240)
+    assert bench.returncode == 143, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert "bench_downstream: offline_lam0 terminated (SIGTERM) at update " in out
+    assert "expert policy" in out and "offline_lam0: 5: " in out and (run / "checkpoint.pt").is_file()
