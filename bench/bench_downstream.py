@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import os
 import sys
 import time
@@ -163,6 +164,11 @@ def read_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def percent(rate: float) -> str:
+    """A success rate as a percentage; "—" where the suite has none (DMC: NaN)."""
+    return "—" if math.isnan(rate) else f"{rate:.0%}"
+
+
 def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[float, float, float]]) -> None:
     low, high = refs["random"][0], refs["expert"][0]
     print(f"\nmachine: {describe_machine(args.sizes['device'])}")
@@ -171,7 +177,7 @@ def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[flo
           f"{'u dataset':>10} {'u imagined':>11}")
     for name, (mean, std, success) in refs.items():
         print(f"{name + ' policy':<28} {'':>8} {mean:>12.1f} ± {std:<7.1f} {(mean - low) / (high - low):>11.2f} "
-              f"{success:>8.0%}")
+              f"{percent(success):>8}")
     curves = []
     for name in names:
         evaluations = read_rows(args.logdir / name / "eval.csv")
@@ -184,9 +190,10 @@ def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[flo
         u = [f"{float(train[key]):>10.3g}" if train.get(key) else f"{'':>10}"
              for key in ("penalty_u_dataset", "penalty_u_imagined")]
         print(f"{name:<28} {step_key[0] + evaluation[step_key]:>8} {mean:>12.1f} ± {std:<7.1f} "
-              f"{(mean - low) / (high - low):>11.2f} {float(evaluation.get('success_rate', 'nan')):>8.0%} {u[0]} {u[1]}")
+              f"{(mean - low) / (high - low):>11.2f} {percent(float(evaluation.get('success_rate', 'nan'))):>8} {u[0]} "
+              f"{u[1]}")
         curves.append(f"{name}: " + ", ".join(f"{row[step_key]}: {float(row['return']):.0f} "
-                                              f"({float(row.get('success_rate', 'nan')):.0%})" for row in evaluations))
+                                              f"({percent(float(row.get('success_rate', 'nan')))})" for row in evaluations))
     print("\nevery evaluation, as updates (offline) or env steps (imitation): return (success rate)")
     print("\n".join(curves))
 
@@ -208,7 +215,7 @@ def final_report(args: argparse.Namespace, names: list[str]) -> None:
     def row(name: str, at: str, mean: float, std: float, success: float) -> None:
         stderr = (success * (1 - success) / episodes) ** 0.5
         print(f"{name:<28} {at:>8} {mean:>10.1f} ± {std:<7.1f} {(mean - low) / (high - low):>11.2f} "
-              f"{success:>8.0%} {stderr:>7.0%}", flush=True)
+              f"{percent(success):>8} {percent(stderr):>7}", flush=True)
 
     for name, (mean, std, success) in refs.items():
         row(name + " policy", "", mean, std, success)

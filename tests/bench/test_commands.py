@@ -141,3 +141,9 @@ def test_bench_downstream_stopped_by_sigterm_reports_the_runs_so_far(tmp_path):
     assert "Traceback" not in err, err[-3000:]
     assert "bench_downstream: offline_lam0 terminated (SIGTERM) at update " in out
     assert "expert policy" in out and "offline_lam0: 5: " in out and (run / "checkpoint.pt").is_file()
+
+
+def test_bench_downstream_shows_no_success_rate_where_the_suite_has_none():
+    from bench.bench_downstream import percent
+
+    assert percent(float("nan")) == "—" and percent(0.4) == "40%" and percent(1.0) == "100%"  # DMC has no success
