@@ -192,8 +192,9 @@ def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[flo
         print(f"{name:<28} {step_key[0] + evaluation[step_key]:>8} {mean:>12.1f} ± {std:<7.1f} "
               f"{(mean - low) / (high - low):>11.2f} {percent(float(evaluation.get('success_rate', 'nan'))):>8} {u[0]} "
               f"{u[1]}")
-        curves.append(f"{name}: " + ", ".join(f"{row[step_key]}: {float(row['return']):.0f} "
-                                              f"({percent(float(row.get('success_rate', 'nan')))})" for row in evaluations))
+        curves.append(f"{name}: " + ", ".join(
+            f"{row[step_key]}: {float(row['return']):.0f} ({percent(float(row.get('success_rate', 'nan')))})"
+            for row in evaluations))
     print("\nevery evaluation, as updates (offline) or env steps (imitation): return (success rate)")
     print("\n".join(curves))
 
