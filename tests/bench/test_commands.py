@@ -94,23 +94,31 @@ def test_bench_learning_starts_a_new_run_and_reports_it(tmp_path):
     assert "random policy:" in done.stdout and (tmp_path / "run" / "learning_curve.png").is_file()
 
 
-def test_bench_learning_stopped_by_sigterm_reports_the_evaluations_so_far(tmp_path):
-    """A GPU call wraps the learning check in `timeout`: its SIGTERM must end the run with its checkpoint and still
-    print the table and draw the curve of the evaluations made, exit status 143 (not a traceback, as on 2026-11-26)."""
-    settings = ["threads=1", "prefill=50", "eval_every=100", "eval_episodes=1", "time_limit=25", "batch_size=4",
-                "seq_len=8"]
-    run = tmp_path / "run"
-    command = [sys.executable, str(REPO / "bench" / "bench_learning.py"), "--minutes", "10", "--chunk", "100000",
-               "--logdir", str(run), *[arg for setting in settings for arg in ("--set", setting)]]
+def stopped_by_sigterm(script: str, args: list[str], evaluations: Path, rows: int) -> tuple[str, str]:
+    """Run bench/`script` with `args`, send it SIGTERM once its `evaluations` CSV holds `rows` rows (the header
+    too), and return its stdout and stderr once it has ended with exit status 143 and no traceback."""
+    command = [sys.executable, str(REPO / "bench" / script), *args]
     with subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as bench:
         deadline = time.monotonic() + 240
-        while not (run / "eval.csv").is_file() or len((run / "eval.csv").read_text().splitlines()) < 3:
+        while not evaluations.is_file() or len(evaluations.read_text().splitlines()) < rows:
             assert bench.poll() is None and time.monotonic() < deadline, bench.stderr.read()[-3000:]
             time.sleep(0.2)
         bench.send_signal(signal.SIGTERM)
         out, err = bench.communicate(timeout=240)
     assert bench.returncode == 143, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
+    return out, err
+
+
+def test_bench_learning_stopped_by_sigterm_reports_the_evaluations_so_far(tmp_path):
+    """A GPU call wraps the learning check in `timeout`: its SIGTERM must end the run with its checkpoint and still
+    print the table and draw the curve of the evaluations made, exit status 143 (not a traceback, as on 2026-11-26)."""
+    settings = ["threads=1", "prefill=50", "eval_every=100", "eval_episodes=1", "time_limit=25", "batch_size=4",
+                "seq_len=8"]
+    run = tmp_path / "run"
+    out, _ = stopped_by_sigterm("bench_learning.py", ["--minutes", "10", "--chunk", "100000", "--logdir", str(run),
+                                                      *[arg for setting in settings for arg in ("--set", setting)]],
+                                run / "eval.csv", rows=3)
     assert "bench_learning: terminated (SIGTERM) at env step " in out and "random policy:" in out
     assert (run / "checkpoint.pt").is_file() and (run / "learning_curve.png").is_file()
 
@@ -126,19 +134,10 @@ def test_bench_downstream_stopped_by_sigterm_reports_the_runs_so_far(tmp_path):
                                                        ensemble=3, temporal_dim=8)), tmp_path / "export", {})
     small = ["eval_every=5", "checkpoint_every=5", "batch_size=4", "seq_len=8", "units=32", "hidden=24"]
     run = tmp_path / "runs" / "offline_lam0"
-    command = [sys.executable, str(REPO / "bench" / "bench_downstream.py"), "--pretrained", str(export), "--logdir",
-               str(tmp_path / "runs"), "--only", "offline", "--updates", "100000", "--lams", "0", "--expert-episodes",
-               "1", "--noisy-episodes", "1", "--demos", "1", "--eval-episodes", "1", "--no-progress",
-               *[arg for setting in small for arg in ("--set", setting)]]
-    with subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as bench:
-        deadline = time.monotonic() + 240
-        while not (run / "eval.csv").is_file() or len((run / "eval.csv").read_text().splitlines()) < 2:
-            assert bench.poll() is None and time.monotonic() < deadline, bench.stderr.read()[-3000:]
-            time.sleep(0.2)
-        bench.send_signal(signal.SIGTERM)
-        out, err = bench.communicate(timeout=240)
-    assert bench.returncode == 143, err[-3000:]
-    assert "Traceback" not in err, err[-3000:]
+    args = ["--pretrained", str(export), "--logdir", str(tmp_path / "runs"), "--only", "offline", "--updates", "100000",
+            "--lams", "0", "--expert-episodes", "1", "--noisy-episodes", "1", "--demos", "1", "--eval-episodes", "1",
+            "--no-progress", *[arg for setting in small for arg in ("--set", setting)]]
+    out, _ = stopped_by_sigterm("bench_downstream.py", args, run / "eval.csv", rows=2)
     assert "bench_downstream: offline_lam0 terminated (SIGTERM) at update " in out
     assert "expert policy" in out and "offline_lam0: 5: " in out and (run / "checkpoint.pt").is_file()
 
