@@ -169,6 +169,7 @@ class PretrainModule(L.LightningModule):
         self.register_buffer("scaler_skips", torch.zeros((), dtype=torch.long))
         self.register_buffer("nonfinite_steps", torch.zeros((), dtype=torch.long))
         self.step_losses: Callable[..., dict[str, torch.Tensor]] = self.training_losses  # compiled in on_fit_start
+        self._cuda_graphs = False  # step_losses replays CUDA graphs (set in on_fit_start)
         self._noise_generator: torch.Generator | None = None
         self._val_sums: torch.Tensor | None = None
         self._skip = torch.zeros((), dtype=torch.bool)  # set each step by on_before_optimizer_step
@@ -241,12 +242,13 @@ class PretrainModule(L.LightningModule):
 
     def on_fit_start(self) -> None:
         self.step_losses = compiled(self.training_losses, self.hparams.compile, self.device)
+        self._cuda_graphs = compile_mode(self.hparams.compile, self.device) == "reduce-overhead"
 
     def training_step(self, batch: dict, batch_idx: int) -> None:
         world_model_opt, dual_opt = self.optimizers()
         log_now = self.trainer.log_every_n_steps > 0 and (self.global_step + 1) % self.trainer.log_every_n_steps == 0
         noise = self.noise(batch["gaps"], self.global_step, stream=0)
-        if compile_mode(self.hparams.compile, self.device) == "reduce-overhead":
+        if self._cuda_graphs:
             torch.compiler.cudagraph_mark_step_begin()  # the last step's graph outputs are no longer read
         terms = self.step_losses(batch["frames"], batch["gaps"], batch["num_frames"], noise)
         world_model_opt.zero_grad()
