@@ -119,8 +119,10 @@ def plan_shards(config: BuildConfig) -> list[ShardPlan]:
 
 
 def check_settings(out: Path, settings: dict, part: int) -> None:
-    """Record the settings in a fresh directory; refuse a resume whose settings differ."""
-    path = out / SETTINGS_FILE
+    """Record the settings in a fresh directory, or in one holding only shards built with them (parts built on other
+    machines and copied there: their stats files carry the settings' digest); refuse a resume whose settings differ
+    and a directory holding other files of a build."""
+    path, tars = out / SETTINGS_FILE, sorted(out.glob("*.tar"))
     if path.is_file():
         try:
             previous = json.loads(path.read_text())
@@ -131,10 +133,22 @@ def check_settings(out: Path, settings: dict, part: int) -> None:
             details = "; ".join(f"{key}: was {was}, now {now}" for key, was, now in _differences(previous, settings))
             raise BuildError(f"{out} holds shards built with other settings ({details}). Re-run with the "
                              f"original settings to resume, or build into a new --out directory.")
-    elif any(out.glob("*.tar")):
-        raise BuildError(f"{out} holds shards but no {SETTINGS_FILE}; build into a new --out directory.")
+    elif foreign := [tar.name for tar in tars if not built_with(tar, settings)]:
+        raise BuildError(f"{out} holds shards that were not built with these settings, and no {SETTINGS_FILE} (e.g. "
+                         f"{foreign[0]}): build into a new --out directory")
+    elif not tars and (present := [name for name in (MANIFEST_FILE, ERRORS_FILE) if (out / name).exists()]):
+        raise BuildError(f"{out} holds a {present[0]} but no {SETTINGS_FILE}: not a build of `hauwm shards build`, "
+                         "whose files would be replaced; build into a new --out directory")
     else:
         _write_json_atomic(path, settings, writer=part)
+
+
+def built_with(tar: Path, settings: dict) -> bool:
+    """Whether the shard `tar` has a stats file that records a build with `settings` (their digest)."""
+    try:
+        return json.loads(tar.with_suffix(".stats.json").read_text()).get("settings_digest") == settings_digest(settings)
+    except (OSError, ValueError, AttributeError):  # missing, not JSON, not an object
+        return False
 
 
 def _differences(previous: dict, current: dict, prefix: str = "") -> list[tuple[str, str, str]]:
@@ -200,8 +214,15 @@ def _metadata(record: ClipRecord, result: ClipResult) -> dict:
             "source_width": result.source_width, "source_height": result.source_height, "fps": result.fps}
 
 
+def clips_held(stats: dict) -> set[str]:
+    """The ids of the clips a shard (its stats) holds: those planned that did not fail."""
+    failed = {error["id"] for error in stats["errors"]}
+    return {clip for clip in stats["planned"] if clip not in failed}
+
+
 def write_shard(config: BuildConfig, plan: ShardPlan, results, digest: str, progress: tqdm) -> dict:
-    """Write one shard from the results of its valid clips, in order; returns its stats."""
+    """Write one shard from the results of its valid clips, in order, to its .partial file; returns its stats.
+    `commit_shard` then puts it in place."""
     extension = ENCODINGS[config.encoding]
     partial = config.out / f".{plan.name}.tar.partial"
     errors, frame_counts, clips, frames, by_opencv = [], Counter(), 0, 0, 0
@@ -219,15 +240,23 @@ def write_shard(config: BuildConfig, plan: ShardPlan, results, digest: str, prog
             clips, frames = clips + 1, frames + result.num_frames
             by_opencv += result.decoder == "opencv"
             frame_counts[str(result.num_frames)] += 1
-    tar_path = config.out / f"{plan.name}.tar"
     stats = {"name": plan.name, "split": plan.split, "index": plan.index, "settings_digest": digest,
              "planned": [r.id for r in plan.records], "clips": clips, "frames": frames,
              "bytes": partial.stat().st_size, "sha256": _sha256(partial),
              "frame_counts": dict(sorted(frame_counts.items(), key=lambda kv: int(kv[0]))), "errors": errors,
              "decoded_by_opencv": by_opencv}
-    os.replace(partial, tar_path)
-    _write_json_atomic(config.out / f"{plan.name}.stats.json", stats)  # last: marks the shard complete
     return stats
+
+
+def commit_shard(config: BuildConfig, stats: dict) -> None:
+    """Put the shard `write_shard` wrote in place of the .partial file; its stats file last: it marks it complete."""
+    os.replace(config.out / f".{stats['name']}.tar.partial", config.out / f"{stats['name']}.tar")
+    _write_json_atomic(config.out / f"{stats['name']}.stats.json", stats)
+
+
+def discard_shard(config: BuildConfig, stats: dict) -> None:
+    """Remove the .partial file of a shard that `write_shard` wrote and that is not to replace the one in place."""
+    (config.out / f".{stats['name']}.tar.partial").unlink()
 
 
 def assemble_manifest(config: BuildConfig, settings: dict, plans: list[ShardPlan], digest: str) -> dict | None:
@@ -300,23 +329,36 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
     settings = settings_of(config)
     check_settings(config.out, settings, config.part)
     digest = settings_digest(settings)
-    kept = {plan.name: stats for plan in mine if (stats := verified_stats(config.out, plan, digest)) is not None}
-    if config.retry_failed:
-        kept = {name: stats for name, stats in kept.items() if not retryable(stats["errors"])}
+    complete = {plan.name: stats for plan in mine if (stats := verified_stats(config.out, plan, digest)) is not None}
+    kept = {name: stats for name, stats in complete.items() if not (config.retry_failed and retryable(stats["errors"]))}
     todo = [plan for plan in mine if plan.name not in kept]
     valid = [r for plan in todo for r in plan.records if not id_fault(r.id)]
     log(f"shards: {len(plans)} in all, {len(mine)} in part {config.part}/{config.num_parts}, "
         f"{len(kept)} already complete, {len(todo)} to build ({len(valid)} clips, {config.workers} workers)")
     started = time.monotonic()
-    built = []
+    built, unchanged = [], []  # unchanged: a message for each shard --retry-failed left as it was
     decode = DecodeSettings(config.size, config.resize, config.min_frames, config.encoding, config.quality)
     with DecodePool(config.workers, decode, config.timeout) as pool, \
             tqdm(total=len(valid), desc="build", unit="clip", disable=None) as progress:
         results = pool.imap(config.videos / f"{record.id}.webm" for record in valid)
         for plan in todo:
-            built.append(write_shard(config, plan, results, digest, progress))
+            stats = write_shard(config, plan, results, digest, progress)
+            before = complete.get(plan.name)  # a shard that --retry-failed rebuilds must not lose a clip it holds
+            if before is not None and (lost := sorted(clips_held(before) - clips_held(stats))):
+                discard_shard(config, stats)
+                reasons = Counter(e["reason"] for e in stats["errors"] if e["id"] in lost)
+                unchanged.append(f"kept {plan.name}.tar as it was: rebuilt, it would lose {len(lost)} of the clips "
+                                 f"it holds ({', '.join(f'{r}: {n}' for r, n in sorted(reasons.items()))}; e.g. "
+                                 f"{lost[0]}). --retry-failed rebuilds whole shards from --videos, which must hold "
+                                 "every clip's video, not only the late ones")
+                kept[plan.name] = before
+            else:
+                commit_shard(config, stats)
+                built.append(stats)
             progress.set_postfix(errors=sum(len(stats["errors"]) for stats in built))
     elapsed = time.monotonic() - started
+    for message in unchanged:
+        log(message)
     part_stats = list(kept.values()) + built
     total = sum(len(stats["planned"]) for stats in part_stats)
     failed = [e for stats in part_stats for e in stats["errors"]]

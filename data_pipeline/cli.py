@@ -25,6 +25,13 @@ def at_least(least: int) -> Callable[[str], int]:
     return whole_number
 
 
+def path(text: str) -> Path:
+    """An argparse type for paths: not empty (an unset shell variable would otherwise mean the current directory)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path (an unset shell variable?): name a file or directory")
+    return Path(text)
+
+
 def _build(args: argparse.Namespace) -> int:
     from .build import BuildConfig, BuildError, build
 
@@ -73,9 +80,11 @@ def _preview(args: argparse.Namespace) -> int:
 def _sample_data(args: argparse.Namespace) -> int:
     from .sample_data import make_sample_data
 
-    taken = [path for path in (args.out / "annotations", args.out / "videos") if path.is_dir() and any(path.iterdir())]
+    taken = [f"{entry.name}/" if entry.is_dir() else entry.name
+             for entry in (args.out / "annotations", args.out / "videos", args.out / "broken.json")
+             if entry.is_file() or (entry.is_dir() and any(entry.iterdir()))]
     if taken:  # a dataset of its own, or an earlier sample: its annotations would be replaced, its videos orphaned
-        print(f"hauwm shards sample-data: {args.out} already holds a dataset ({', '.join(p.name + '/' for p in taken)}): "
+        print(f"hauwm shards sample-data: {args.out} already holds a dataset ({', '.join(taken)}): "
               "pass another --out, or delete it first", file=sys.stderr)
         return 2
     broken = make_sample_data(args.out, args.clips, with_broken=args.with_broken, seed=args.seed, workers=args.workers)
@@ -90,10 +99,10 @@ def parser() -> argparse.ArgumentParser:
 
     build = commands.add_parser("build", help="decode an SSv2 tree into 64×64 WebDataset shards (resumable)")
     flag = build.add_argument
-    flag("--annotations", metavar="DIR", type=Path, required=True, help="directory with something-something-v2-*.json")
-    flag("--videos", metavar="DIR", type=Path, required=True, help="directory with <id>.webm")
+    flag("--annotations", metavar="DIR", type=path, required=True, help="directory with something-something-v2-*.json")
+    flag("--videos", metavar="DIR", type=path, required=True, help="directory with <id>.webm")
     flag("--split", action="append", choices=SPLITS, help="split to build; repeatable (default: train and validation)")
-    flag("--out", metavar="DIR", type=Path, required=True, help="output directory for shards, manifest, errors")
+    flag("--out", metavar="DIR", type=path, required=True, help="output directory for shards, manifest, errors")
     flag("--size", metavar="N", type=int, default=64, help="frame side in pixels, at most 512 (default 64)")
     flag("--resize", choices=RESIZE_MODES, default="squash",
          help="squash the whole frame to a square, or crop the centre square first (default squash)")
@@ -115,14 +124,14 @@ def parser() -> argparse.ArgumentParser:
     build.set_defaults(run=_build)
 
     inspect = commands.add_parser("inspect", help="counts per split, frames, bytes, errors by reason")
-    inspect.add_argument("dir", type=Path, help="shard directory (with manifest.json)")
+    inspect.add_argument("dir", type=path, help="shard directory (with manifest.json)")
     inspect.add_argument("--verify", action="store_true", help="re-check every shard against the manifest")
     inspect.set_defaults(run=_inspect)
 
     preview = commands.add_parser("preview", help="a PNG grid of sampled sequences, frames along the rows")
     flag = preview.add_argument
-    flag("dir", type=Path, help="shard directory (with manifest.json)")
-    flag("--out", metavar="PNG", type=Path, required=True, help="image file to write")
+    flag("dir", type=path, help="shard directory (with manifest.json)")
+    flag("--out", metavar="PNG", type=path, required=True, help="image file to write")
     flag("--split", default=None, help="split to show (default: the first in the manifest)")
     flag("--clips", metavar="N", type=at_least(1), default=8, help="rows (default 8)")
     flag("--length", metavar="L", type=at_least(1), default=8, help="frames per row (default 8)")
@@ -132,7 +141,7 @@ def parser() -> argparse.ArgumentParser:
 
     sample = commands.add_parser("sample-data", help="write the built-in stochastic-scene dataset in SSv2's format")
     flag = sample.add_argument
-    flag("--out", metavar="DIR", type=Path, required=True, help="output directory (annotations/, videos/)")
+    flag("--out", metavar="DIR", type=path, required=True, help="output directory (annotations/, videos/)")
     flag("--clips", metavar="N", type=at_least(3), default=96,
          help="good clips over all splits, at least 3: one each for validation and test (default 96)")
     flag("--with-broken", action="store_true",

@@ -21,7 +21,8 @@ import lightning
 import torch
 from lightning.pytorch.utilities import rank_zero_info
 
-from .loader import LoaderError, SequenceDataset, check_worker_priority, make_dataloader, shard_set
+from .loader import (LoaderError, SequenceDataset, check_shard_url, check_worker_priority, make_dataloader,
+                     shard_set)
 from .shard_format import read_manifest
 
 MAX_TIMEOUT = 86_400.0  # --data.timeout: a day
@@ -67,6 +68,7 @@ class ShardDataModule(lightning.LightningDataModule):
         if not shards:
             raise LoaderError("no shard directory: pass --data.shards DIR (built by `hauwm shards build`)")
         check_worker_priority(worker_priority)
+        check_shard_url(shard_url)
         for name, value, least in (("num_workers", num_workers, 0), ("val_batches", val_batches, 1),
                                    ("batch_size", batch_size, 1), ("shuffle_buffer", shuffle_buffer, 0),
                                    ("seed", seed, 0)):

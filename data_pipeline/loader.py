@@ -45,6 +45,7 @@ import multiprocessing.connection
 import os
 import random
 import signal
+import string
 import threading
 import warnings
 from collections import Counter
@@ -104,6 +105,24 @@ class ShardSet:
             return None
         frames, clips = np.array(lengths).T
         return float(np.median(np.repeat(frames, clips)))
+
+
+def check_shard_url(template: str | None) -> None:
+    """A `shard_url` names each tar through `{name}` and nothing else: without it every shard would be one tar (the
+    validation split too), and another field would fail at the first shard."""
+    if template is None:
+        return
+    try:
+        fields = {field for _, field, _, _ in string.Formatter().parse(template) if field is not None}
+    except ValueError as err:  # an unmatched brace
+        raise LoaderError(f"--data.shard_url {template!r}: {err}; write {{name}} where each tar's file name goes, and "
+                          "double any other brace ({{ }})") from None
+    if fields != {"name"}:
+        other = sorted(fields - {"name"})
+        raise LoaderError(f"--data.shard_url {template!r} must name each tar through {{name}} (e.g. "
+                          f"'pipe:aws s3 cp s3://bucket/shards/{{name}} -')" +
+                          (f", and no other field ({{{other[0]}}})" if other else "; without it every shard would be "
+                           "the same tar"))
 
 
 def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -> ShardSet:

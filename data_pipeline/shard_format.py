@@ -40,9 +40,6 @@ BUILD_HINT = ("build it with `hauwm shards build --annotations DIR --videos DIR 
 REBUILD_MANIFEST = ("re-run the `hauwm shards build` command that made the directory: it keeps the finished shards "
                     "and writes manifest.json and errors.jsonl again")
 # the entries of a manifest its readers use (inspect, preview, the loader, `hauwm pretrain`), part by part
-SETTINGS_KEYS = ("size", "resize", "encoding", "quality")
-SPLIT_KEYS = ("clips", "frames", "bytes", "errors", "shards")
-SHARD_KEYS = ("name", "clips", "frames", "bytes", "sha256", "frame_counts")
 NPY_HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
 
 
@@ -71,8 +68,8 @@ def read_manifest(directory: str | Path) -> dict:
     if manifest["format_version"] != FORMAT_VERSION:
         raise ShardDirError(f"{path} is of shard format {manifest['format_version']!r}; this HAUWM reads format "
                             f"{FORMAT_VERSION}: build the shards again with it")
-    if missing := missing_entry(manifest):  # valid JSON, but cut short or edited: a KeyError deep in a reader
-        raise ShardDirError(f"{path} is damaged (it has no {missing}); {REBUILD_MANIFEST}")
+    if problem := faulty_entry(manifest):  # valid JSON, but cut short or edited: a KeyError deep in a reader
+        raise ShardDirError(f"{path} is damaged ({problem}); {REBUILD_MANIFEST}")
     if not manifest["splits"]:
         raise ShardDirError(f"{path} lists no split: its build found no clip; build again with label files that list "
                             "clips (`hauwm shards build --split ...`)")
@@ -83,26 +80,57 @@ def read_manifest(directory: str | Path) -> dict:
     return manifest
 
 
-def missing_entry(manifest: dict) -> str | None:
-    """The first entry a manifest lacks (or holds as something else than a mapping or list), named by its path,
-    e.g. `splits.train.shards[0].sha256`; None when it has them all."""
-    def lacking(where: str, part: object, keys: tuple[str, ...]) -> str | None:
-        if not isinstance(part, dict):
-            return f"{where} (a mapping)"
-        return next((f"{where}.{key}" for key in keys if key not in part), None)
+def count(value: object) -> bool:
+    """A whole number ≥ 0, as a build writes clip, frame, byte and error counts (not a bool, not a float)."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
-    if problem := lacking("settings", manifest["settings"], SETTINGS_KEYS) or lacking("errors", manifest["errors"],
-                                                                                      ("total",)):
+
+def file_name(value: object) -> bool:
+    """A shard's file name in its directory (no path: a name with one would read a file elsewhere)."""
+    return isinstance(value, str) and value.endswith(".tar") and "/" not in value and "\\" not in value
+
+
+def frame_histogram(value: object) -> bool:
+    """A shard's frame-count histogram: {"<frames>": clips}."""
+    return isinstance(value, dict) and all(key.isdigit() and count(n) for key, n in value.items())
+
+
+# what a build writes in each entry: (key, test, what the test wants)
+SETTINGS_KINDS = (("size", lambda v: count(v) and v > 0, "a positive whole number"),
+                  ("resize", lambda v: isinstance(v, str), "a string"), ("encoding", lambda v: v in ENCODINGS,
+                  f"one of {', '.join(ENCODINGS)}"), ("quality", count, "a whole number"))
+SPLIT_KINDS = (*((key, count, "a whole number ≥ 0") for key in ("clips", "frames", "bytes", "errors")),
+               ("shards", lambda v: isinstance(v, list), "a list of shards"))
+SHARD_KINDS = (("name", file_name, "the file name of a .tar in the directory"),
+               *((key, count, "a whole number ≥ 0") for key in ("clips", "frames", "bytes")),
+               ("sha256", lambda v: isinstance(v, str), "a string"),
+               ("frame_counts", frame_histogram, 'a mapping {"<frames>": clips}'))
+
+
+def faulty_entry(manifest: dict) -> str | None:
+    """The first entry a manifest lacks or holds as something else than a build writes, named by its path, e.g.
+    `it has no splits.train.shards[0].sha256` or `its settings.size is null, not a positive whole number`; None when
+    every entry is as a build writes it."""
+    def fault(where: str, part: object, kinds: tuple) -> str | None:
+        if not isinstance(part, dict):
+            return f"it has no {where} (a mapping)"
+        for key, test, wanted in kinds:
+            if key not in part:
+                return f"it has no {where}.{key}"
+            if not test(part[key]):
+                return f"its {where}.{key} is {json.dumps(part[key])[:40]}, not {wanted}"
+        return None
+
+    if problem := fault("settings", manifest["settings"], SETTINGS_KINDS) or fault("errors", manifest["errors"],
+                                                                                   (("total", count, "a whole number"),)):
         return problem
     if not isinstance(manifest["splits"], dict):
-        return "splits (a mapping of split names)"
+        return "it has no splits (a mapping of split names)"
     for split, counts in manifest["splits"].items():
-        if problem := lacking(f"splits.{split}", counts, SPLIT_KEYS):
+        if problem := fault(f"splits.{split}", counts, SPLIT_KINDS):
             return problem
-        if not isinstance(counts["shards"], list):
-            return f"splits.{split}.shards (a list of shards)"
         for i, shard in enumerate(counts["shards"]):
-            if problem := lacking(f"splits.{split}.shards[{i}]", shard, SHARD_KEYS):
+            if problem := fault(f"splits.{split}.shards[{i}]", shard, SHARD_KINDS):
                 return problem
     return None
 

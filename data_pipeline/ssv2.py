@@ -16,6 +16,7 @@ from pathlib import Path
 
 SPLITS = ("train", "validation", "test")
 NO_LABEL = -1
+MAX_CLASS_INDEX = 2**31 - 1  # class indices travel as 64-bit integers; SSv2 has 174 classes
 
 
 class AnnotationError(ValueError):
@@ -60,7 +61,16 @@ def load_labels(annotations: Path) -> dict[str, int]:
         if isinstance(index, bool) or not (isinstance(index, int) or isinstance(index, str) and index.isdigit()):
             raise AnnotationError(f"{path}: class {name!r} has index {index!r}; an index must be a whole number "
                                   "(or a string of digits, as SSv2 writes them)")
-    return {name: int(index) for name, index in labels.items()}
+    indices = {name: int(index) for name, index in labels.items()}
+    class_of: dict[int, str] = {}
+    for name, index in indices.items():
+        if index > MAX_CLASS_INDEX:
+            raise AnnotationError(f"{path}: class {name!r} has index {index}, more than {MAX_CLASS_INDEX}: number the "
+                                  "classes 0, 1, 2, …")
+        if class_of.setdefault(index, name) != name:
+            raise AnnotationError(f"{path}: classes {class_of[index]!r} and {name!r} share index {index}; each class "
+                                  "needs its own")
+    return indices
 
 
 def _field(path: Path, position: int, entry: dict, name: str) -> str:

@@ -214,6 +214,41 @@ def test_parts_build_the_same_shards_and_the_last_writes_the_manifest(sample_ssv
     assert directory_bytes(tmp_path) == directory_bytes(built_shards)
 
 
+def test_parts_built_on_machines_without_a_shared_disk_assemble_where_their_files_are_copied(
+        sample_ssv2, clean_annotations, built_shards, tmp_path):
+    def config(part, out):
+        return BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=out,
+                           splits=["train", "validation"], clips_per_shard=4, part=part, num_parts=2,
+                           max_error_rate=0.0)
+    for part in (0, 1):
+        build(config(part, tmp_path / f"machine-{part}"), log=quiet)
+    gathered = tmp_path / "gathered"
+    gathered.mkdir()
+    for path in [*tmp_path.glob("machine-*/*.tar"), *tmp_path.glob("machine-*/*.stats.json")]:  # docs/data_pipeline.md
+        shutil.copy(path, gathered)
+    manifest, status = build(config(0, gathered), log=quiet)
+    assert manifest is not None and status == 0
+    assert directory_bytes(gathered) == directory_bytes(built_shards)
+    other = config(0, tmp_path / "machine-1")
+    (other.out / "build.json").unlink()
+    with pytest.raises(BuildError, match=r"holds shards that were not built with these settings, and no build.json "
+                                         r"\(e.g. train-000001.tar\)"):
+        build(dataclasses.replace(other, size=32), log=quiet)
+
+
+def test_a_directory_holding_a_manifest_or_errors_file_of_something_else_is_refused(sample_ssv2, clean_annotations,
+                                                                                    tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "manifest.json").write_text('{"my": "precious manifest"}')
+    config = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=out, splits=["validation"])
+    with pytest.raises(BuildError, match=r"mine holds a manifest.json but no build.json: not a build of `hauwm shards "
+                                         r"build`, whose files would be replaced; build into a new --out directory"):
+        build(config, log=quiet)
+    assert [path.name for path in out.iterdir()] == ["manifest.json"]
+    assert (out / "manifest.json").read_text() == '{"my": "precious manifest"}'
+
+
 def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
     config = BuildConfig(annotations=tmp_path / "nowhere", videos=sample_ssv2 / "videos", out=tmp_path / "out")
     result = subprocess.run(build_cli("--annotations", tmp_path / "nowhere", "--videos", sample_ssv2 / "videos",
@@ -309,3 +344,23 @@ def test_retry_failed_rebuilds_the_shard_of_a_clip_that_was_missing(sample_ssv2,
     manifest, status = build(dataclasses.replace(config, retry_failed=True), log=quiet)
     assert manifest["errors"]["total"] == 0 and manifest["splits"]["validation"]["clips"] == 3 and status == 0
     assert (config.out / "errors.jsonl").read_text() == ""
+
+
+def test_retry_failed_never_loses_a_clip_a_shard_holds(sample_ssv2, clean_annotations, tmp_path):
+    videos = shutil.copytree(sample_ssv2 / "videos", tmp_path / "videos")
+    clips = [entry["id"] for entry in json.loads(annotation_path(clean_annotations, "validation").read_text())]
+    (videos / f"{clips[1]}.webm").rename(tmp_path / "late.webm")  # not downloaded yet
+    config = BuildConfig(annotations=clean_annotations, videos=videos, out=tmp_path / "shards", splits=["validation"],
+                         max_error_rate=0.5)
+    build(config, log=quiet)
+    before = directory_bytes(config.out)
+    late = tmp_path / "late-videos"  # the natural retry: a directory holding only the late download
+    late.mkdir()
+    (tmp_path / "late.webm").rename(late / f"{clips[1]}.webm")
+    lines = []
+    manifest, status = build(dataclasses.replace(config, videos=late, retry_failed=True), log=lines.append)
+    assert directory_bytes(config.out) == before  # the shard as it was: its other clips' videos are not in late/
+    assert manifest["splits"]["validation"]["clips"] == 2 and manifest["errors"]["by_reason"] == {"missing": 1}
+    assert any(line.startswith("kept validation-000000.tar as it was: rebuilt, it would lose 2 of the clips it holds "
+                               "(missing: 2; e.g. ") and "must hold every clip's video" in line for line in lines)
+    assert not list(config.out.glob(".*.partial"))

@@ -56,14 +56,26 @@ def test_a_damaged_or_foreign_manifest_is_named_by_every_reader(built_shards, tm
     assert err.count(f"{shards / 'manifest.json'} {message}") == 3 and "Traceback" not in err
 
 
-@pytest.mark.parametrize(("cut", "missing"), [
-    (lambda m: m["settings"].pop("size"), "settings.size"),
-    (lambda m: m["splits"]["train"].pop("shards"), "splits.train.shards"),
-    (lambda m: m["splits"]["validation"]["shards"][0].pop("frame_counts"), "splits.validation.shards[0].frame_counts"),
-    (lambda m: m["splits"].update(train=[]), "splits.train (a mapping)"),
-    (lambda m: m.update(errors=None), "errors (a mapping)"),
+@pytest.mark.parametrize(("cut", "problem"), [
+    (lambda m: m["settings"].pop("size"), "it has no settings.size"),
+    (lambda m: m["splits"]["train"].pop("shards"), "it has no splits.train.shards"),
+    (lambda m: m["splits"]["validation"]["shards"][0].pop("frame_counts"),
+     "it has no splits.validation.shards[0].frame_counts"),
+    (lambda m: m["splits"].update(train=[]), "it has no splits.train (a mapping)"),
+    (lambda m: m.update(errors=None), "it has no errors (a mapping)"),
+    # edited by hand: each of these was a TypeError or ValueError deep inside a reader
+    (lambda m: m["splits"]["train"].update(clips=None), "its splits.train.clips is null, not a whole number ≥ 0"),
+    (lambda m: m["splits"]["train"].update(bytes="big"), 'its splits.train.bytes is "big", not a whole number ≥ 0'),
+    (lambda m: m["splits"]["train"]["shards"][0].update(name=5),
+     "its splits.train.shards[0].name is 5, not the file name of a .tar in the directory"),
+    (lambda m: m["splits"]["train"]["shards"][0].update(name="../elsewhere/train-000000.tar"),
+     'its splits.train.shards[0].name is "../elsewhere/train-000000.tar", not the file name of a .tar'),
+    (lambda m: m["splits"]["train"]["shards"][0].update(frame_counts={"abc": 1}),
+     'its splits.train.shards[0].frame_counts is {"abc": 1}, not a mapping {"<frames>": clips}'),
+    (lambda m: m["splits"]["train"]["shards"][0].update(frame_counts={"29": "1"}),
+     'its splits.train.shards[0].frame_counts is {"29": "1"}, not a mapping'),
 ])
-def test_a_manifest_that_lacks_an_entry_is_named_with_it_not_a_key_error(built_shards, tmp_path, capsys, cut, missing):
+def test_a_manifest_that_lacks_an_entry_is_named_with_it_not_a_key_error(built_shards, tmp_path, capsys, cut, problem):
     shards = tmp_path / "shards"
     shutil.copytree(built_shards, shards)
     manifest = json.loads((shards / "manifest.json").read_text())
@@ -74,7 +86,8 @@ def test_a_manifest_that_lacks_an_entry_is_named_with_it_not_a_key_error(built_s
     from model.cli import main as pretrain
     assert pretrain(["analyze", "--model", "nowhere", "--shards", str(shards), "--out", str(tmp_path / "a")]) == 2
     err = capsys.readouterr().err
-    assert err.count(f"{shards / 'manifest.json'} is damaged (it has no {missing}); re-run the `hauwm shards build`") == 3
+    assert err.count(f"{shards / 'manifest.json'} is damaged ({problem}") == 3
+    assert err.count("re-run the `hauwm shards build`") == 3
     assert "Traceback" not in err
 
 
@@ -126,17 +139,25 @@ def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
     assert json.loads((tmp_path / "broken.json").read_text()) == {}
     written = {path: path.read_bytes() for path in annotations.iterdir()}
     assert main(["sample-data", "--out", str(tmp_path), "--clips", "3", "--workers", "1"]) == 2  # not over a dataset
-    assert f"{tmp_path} already holds a dataset (annotations/, videos/)" in capsys.readouterr().err
+    assert f"{tmp_path} already holds a dataset (annotations/, videos/, broken.json)" in capsys.readouterr().err
     assert {path: path.read_bytes() for path in annotations.iterdir()} == written
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "broken.json").write_text("my notes")  # a file of the user's own, under the name sample-data writes
+    assert main(["sample-data", "--out", str(notes), "--clips", "3", "--workers", "1"]) == 2
+    assert f"{notes} already holds a dataset (broken.json)" in capsys.readouterr().err
+    assert (notes / "broken.json").read_text() == "my notes"
 
 
 @pytest.mark.parametrize(("argv", "message"), [
+    (["build", "--annotations", "A", "--videos", "V", "--out", ""], "argument --out: an empty path (an unset shell"),
+    (["inspect", " "], "argument dir: an empty path"),
     (["preview", "DIR", "--out", "p.png", "--clips", "0"], "argument --clips: must be a whole number >= 1, got '0'"),
     (["sample-data", "--out", "OUT", "--clips", "-3"], "argument --clips: must be a whole number >= 3"),
     (["preview", "DIR", "--out", "p.png", "--seed", "-1"], "argument --seed: must be a whole number >= 0, got '-1'"),
     (["sample-data", "--out", "OUT", "--seed", "x"], "argument --seed: must be a whole number >= 0, got 'x'"),
 ])
-def test_counts_and_seeds_out_of_range_are_refused_by_flag(argv, message, capsys):
+def test_bad_flag_values_are_refused_by_flag(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(argv)
     assert exit_.value.code == 2 and message in capsys.readouterr().err

@@ -254,6 +254,12 @@ def test_ctrl_c_is_left_to_the_training_process(built_shards):
     (dict(batch_size=0), "--data.batch_size must be at least 1, got 0"),
     (dict(shuffle_buffer=-4), "--data.shuffle_buffer must be at least 0, got -4"),
     (dict(seed=-1), "--data.seed must be at least 0, got -1"),
+    # a shard_url without {name} made every shard of both splits one tar: validation on training clips, silently
+    (dict(shard_url="/data/train-000000.tar"), r"--data.shard_url '/data/train-000000.tar' must name each tar "
+                                               r"through \{name\} .*; without it every shard would be the same tar"),
+    (dict(shard_url="s3://b/{nam}"), r"must name each tar through \{name\} .*, and no other field \(\{nam\}\)"),
+    (dict(shard_url="s3://b/{0}"), r"and no other field \(\{0\}\)"),
+    (dict(shard_url="s3://b/{name"), r"--data.shard_url 's3://b/\{name': expected '\}' before end of string"),
     pytest.param(dict(pin_memory=True), "--data.pin_memory true: no CUDA GPU is visible",
                  marks=pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU pins")),
 ])

@@ -103,3 +103,14 @@ def test_a_class_index_that_is_not_a_whole_number_is_refused(annotations, index)
     write(annotations, "labels", labels | {"Pushing something from left to right": index})
     with pytest.raises(AnnotationError, match=r"labels.json: class 'Pushing something from left to right' has index"):
         load_labels(annotations)
+
+
+@pytest.mark.parametrize(("index", "message"), [
+    ("99999999999999999999999", r"has index 99999999999999999999999, more than 2147483647: number the classes"),
+    ("0", r"classes .* and 'Pushing something from left to right' share index 0; each class needs its own"),
+])
+def test_a_class_index_too_large_or_shared_is_refused(annotations, index, message):
+    labels = json.loads((annotations / "something-something-v2-labels.json").read_text())
+    write(annotations, "labels", labels | {"Pushing something from left to right": index})
+    with pytest.raises(AnnotationError, match=message):
+        load_labels(annotations)
