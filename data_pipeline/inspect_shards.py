@@ -2,8 +2,9 @@
 
 Prints, per split, clips, frames, shards, bytes and bytes per frame, and the failed clips by reason
 (from manifest.json and errors.jsonl). `--verify` re-reads every shard: it must exist with the
-manifest's size and SHA-256, and hold exactly the manifest's clips and frames, each clip with its
-frames member and a JSON member whose `num_frames` matches the frames stored.
+manifest's size and SHA-256, and hold exactly the manifest's clips, frames and frame-count histogram, each clip
+with its frames member (of the manifest's encoding and frame size) and a JSON member whose `num_frames` matches
+the frames stored; each split's totals must be its shards' sums, and no tar may lie there unlisted.
 """
 
 from __future__ import annotations
@@ -16,11 +17,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .shard_format import ERRORS_FILE, REBUILD_MANIFEST, decode_frames, frames_member, read_manifest, read_samples
+from .shard_format import (ENCODINGS, ERRORS_FILE, MANIFEST_FILE, REBUILD_MANIFEST, decode_frames, frames_member,
+                           read_manifest, read_samples)
 
 
-def check_shard(path: Path, expected: dict) -> list[str]:
-    """Problems with one shard (empty when it matches its manifest entry)."""
+def check_shard(path: Path, expected: dict, settings: dict) -> list[str]:
+    """Problems with one shard (empty when it matches its manifest entry and the build's settings)."""
     if not path.is_file():
         return [f"{path.name}: missing"]
     problems = []
@@ -29,21 +31,45 @@ def check_shard(path: Path, expected: dict) -> list[str]:
         problems.append(f"{path.name}: {len(data)} bytes, manifest says {expected['bytes']}")
     if hashlib.sha256(data).hexdigest() != expected["sha256"]:
         problems.append(f"{path.name}: SHA-256 differs from the manifest")
+    histogram, clip = Counter(), None
     try:
-        clips, frames = 0, 0
         for sample in read_samples(io.BytesIO(data), path.name):
+            clip = sample["__key__"]
             metadata = json.loads(sample["json"])
             extension, member = frames_member(sample)
-            stored = len(decode_frames(member, extension))
-            if stored != metadata["num_frames"]:
-                problems.append(f"{path.name}: clip {sample['__key__']} stores {stored} frames, "
+            if extension != ENCODINGS[settings["encoding"]]:
+                problems.append(f"{path.name}: clip {clip} stores .{extension} frames, the manifest's encoding "
+                                f"{settings['encoding']} .{ENCODINGS[settings['encoding']]}")
+            stored = decode_frames(member, extension)  # [T, H, W, 3]
+            if stored.shape[1:3] != (settings["size"],) * 2:
+                problems.append(f"{path.name}: clip {clip} stores {stored.shape[2]}×{stored.shape[1]} frames, the "
+                                f"manifest says {settings['size']}×{settings['size']}")
+            if len(stored) != metadata["num_frames"]:
+                problems.append(f"{path.name}: clip {clip} stores {len(stored)} frames, "
                                 f"its JSON says {metadata['num_frames']}")
-            clips, frames = clips + 1, frames + stored
+            histogram[str(len(stored))] += 1
     except (KeyError, ValueError) as error:  # read_samples names a broken tar with a ValueError
-        return problems + [f"{path.name}: unreadable ({type(error).__name__}: {error})"]
+        where = f" (after clip {clip})" if clip is not None else ""
+        return problems + [f"{path.name}: unreadable{where} ({type(error).__name__}: {error})"]
+    clips, frames = histogram.total(), sum(int(length) * n for length, n in histogram.items())
     if clips != expected["clips"] or frames != expected["frames"]:
         problems.append(f"{path.name}: {clips} clips and {frames} frames, manifest says "
                         f"{expected['clips']} and {expected['frames']}")
+    elif histogram != Counter(expected["frame_counts"]):  # what the loader sizes its epochs from
+        problems.append(f"{path.name}: the clips' frame counts differ from the manifest's frame_counts")
+    return problems
+
+
+def check_totals(directory: Path, manifest: dict) -> list[str]:
+    """Problems with the manifest's split totals (each the sum over its shards) and tars it does not list."""
+    problems = []
+    for split, counts in manifest["splits"].items():
+        for key in ("clips", "frames", "bytes"):
+            if (total := sum(shard[key] for shard in counts["shards"])) != counts[key]:
+                problems.append(f"{MANIFEST_FILE}: split {split} has {counts[key]} {key}, its shards {total}")
+    listed = {shard["name"] for counts in manifest["splits"].values() for shard in counts["shards"]}
+    problems += [f"{tar.name}: in {directory} but not in the manifest" for tar in sorted(directory.glob("*.tar"))
+                 if tar.name not in listed]
     return problems
 
 
@@ -84,7 +110,8 @@ def inspect_shards(directory: Path, verify: bool = False, log=print) -> int:
     shards = [(split, shard) for split, counts in manifest["splits"].items() for shard in counts["shards"]]
     problems = []
     for split, shard in tqdm(shards, desc="verify", unit="shard", disable=None):
-        problems += check_shard(directory / shard["name"], shard)
+        problems += check_shard(directory / shard["name"], shard, settings)
+    problems += check_totals(directory, manifest)
     if len(errors) != manifest["errors"]["total"] or damaged:
         problems.append(f"{ERRORS_FILE}: {len(errors)} clip failures and {damaged} damaged lines, manifest says "
                         f"{manifest['errors']['total']} failures")

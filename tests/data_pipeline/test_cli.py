@@ -1,6 +1,7 @@
 """`hauwm shards inspect|preview|sample-data` through the command line entry point."""
 
 import json
+import re
 import shutil
 
 import cv2
@@ -26,6 +27,25 @@ def test_inspect_reports_counts_and_verify_catches_a_damaged_shard(built_shards,
     assert main(["inspect", str(damaged), "--verify"]) == 1
     out = capsys.readouterr().out
     assert "FAILED train-000002.tar: SHA-256 differs from the manifest" in out
+
+
+@pytest.mark.parametrize(("edit", "problem"), [  # manifests edited by hand that verify used to call a match
+    (lambda m: m["settings"].update(size=32), "train-000000.tar: clip .* stores 64×64 frames, the manifest says 32×32"),
+    (lambda m: m["settings"].update(encoding="raw"), "train-000000.tar: clip .* stores .jpgs frames, the manifest's "
+                                                     "encoding raw .npy"),
+    (lambda m: m["splits"]["train"]["shards"][0].update(frame_counts={"100": m["splits"]["train"]["shards"][0]["clips"]}),
+     "train-000000.tar: the clips' frame counts differ from the manifest's frame_counts"),
+    (lambda m: m["splits"]["train"].update(clips=m["splits"]["train"]["clips"] + 1),
+     "manifest.json: split train has [0-9]+ clips, its shards [0-9]+"),
+    (lambda m: m["splits"]["train"]["shards"].pop(), "train-00000[0-9].tar: in .* but not in the manifest"),
+])
+def test_verify_catches_a_manifest_edited_by_hand(built_shards, tmp_path, capsys, edit, problem):
+    shards = shutil.copytree(built_shards, tmp_path / "shards")
+    manifest = json.loads((shards / "manifest.json").read_text())
+    edit(manifest)
+    (shards / "manifest.json").write_text(json.dumps(manifest))
+    assert main(["inspect", str(shards), "--verify"]) == 1
+    assert re.search(f"FAILED {problem}", capsys.readouterr().out)
 
 
 def test_inspect_without_manifest_says_how_to_build(tmp_path, capsys):
