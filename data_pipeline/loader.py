@@ -65,6 +65,7 @@ from webdataset.utils import pytorch_worker_info
 from .batch_slots import BatchSlots, SlotBatch, batch_views, block_bytes, shared_memory_free
 from .sampling import gaps_of, sample_indices
 from .shard_format import MANIFEST_FILE, decode_frames, frames_member, read_manifest, read_samples
+from .ssv2 import SPLITS
 
 VERIFY_HINT = "check the shards with `hauwm shards inspect DIR --verify` and rebuild the broken one"
 RESUME_HINT = "the checkpoints written so far are intact: resume with `--ckpt_path RUN/checkpoints/last.ckpt`"
@@ -130,8 +131,9 @@ def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -
     `"pipe:aws s3 cp s3://bucket/shards/{name} -"`) fetches each tar from elsewhere; default: the local file."""
     manifest = read_manifest(directory)
     if split not in manifest["splits"]:
+        remedy = f"build it with `hauwm shards build ... --split {split}`" if split in SPLITS else "name one of those"
         raise LoaderError(f"{Path(directory) / MANIFEST_FILE} has no split {split!r} (it has "
-                          f"{', '.join(manifest['splits'])}); build it with `hauwm shards build ... --split {split}`")
+                          f"{', '.join(manifest['splits'])}); {remedy}")
     shards = manifest["splits"][split]["shards"]
     urls = [shard_url.format(name=s["name"]) if shard_url else str(Path(directory) / s["name"]) for s in shards]
     counts = [{int(frames): n for frames, n in s["frame_counts"].items()} for s in shards]

@@ -320,6 +320,8 @@ def test_datamodule_validates_its_inputs(built_shards, tmp_path):
         ShardDataModule(str(tmp_path)).setup("fit")
     with pytest.raises(LoaderError, match="has no split 'test'.*--split test"):
         ShardDataModule(str(built_shards), val_split="test", batch_size=2, seq_len=8).setup("fit")
+    with pytest.raises(LoaderError, match=r"has no split 'bogus' \(it has train, validation\); name one of those$"):
+        ShardDataModule(str(built_shards), train_split="bogus", batch_size=2, seq_len=8).setup("fit")
     manifest = json.loads((built_shards / "manifest.json").read_text())
     for change, message in (({"splits": {}}, "lists no split"),
                             ({"splits": manifest["splits"] | {"validation": manifest["splits"]["train"]}},
