@@ -31,7 +31,7 @@ def check_shard(path: Path, expected: dict, settings: dict) -> list[str]:
         problems.append(f"{path.name}: {len(data)} bytes, manifest says {expected['bytes']}")
     if hashlib.sha256(data).hexdigest() != expected["sha256"]:
         problems.append(f"{path.name}: SHA-256 differs from the manifest")
-    histogram, clip = Counter(), None
+    histogram = Counter()
     try:
         for sample in read_samples(io.BytesIO(data), path.name):
             clip = sample["__key__"]
@@ -40,7 +40,11 @@ def check_shard(path: Path, expected: dict, settings: dict) -> list[str]:
             if extension != ENCODINGS[settings["encoding"]]:
                 problems.append(f"{path.name}: clip {clip} stores .{extension} frames, the manifest's encoding "
                                 f"{settings['encoding']} .{ENCODINGS[settings['encoding']]}")
-            stored = decode_frames(member, extension)  # [T, H, W, 3]
+            try:
+                stored = decode_frames(member, extension)  # [T, H, W, 3]
+            except ValueError as error:
+                problems.append(f"{path.name}: clip {clip}: its frames do not decode ({error})")
+                continue
             if stored.shape[1:3] != (settings["size"],) * 2:
                 problems.append(f"{path.name}: clip {clip} stores {stored.shape[2]}×{stored.shape[1]} frames, the "
                                 f"manifest says {settings['size']}×{settings['size']}")
@@ -49,8 +53,7 @@ def check_shard(path: Path, expected: dict, settings: dict) -> list[str]:
                                 f"its JSON says {metadata['num_frames']}")
             histogram[str(len(stored))] += 1
     except (KeyError, ValueError) as error:  # read_samples names a broken tar with a ValueError
-        where = f" (after clip {clip})" if clip is not None else ""
-        return problems + [f"{path.name}: unreadable{where} ({type(error).__name__}: {error})"]
+        return problems + [f"{path.name}: unreadable ({type(error).__name__}: {error})"]
     clips, frames = histogram.total(), sum(int(length) * n for length, n in histogram.items())
     if clips != expected["clips"] or frames != expected["frames"]:
         problems.append(f"{path.name}: {clips} clips and {frames} frames, manifest says "
