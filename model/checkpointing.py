@@ -9,7 +9,7 @@ during the copy (the OOM killer, SLURM after its grace period) leaves a truncate
 `LastStepCheckpoint` writes last.ckpt at the step a fit stops at, inside its epoch: at `trainer.max_steps`, when
 something asked the fit to stop (`trainer.max_time`'s Timer, an early stop), and on SIGTERM (what SLURM and
 Kubernetes send at preemption or a time limit; Lightning ends the fit after the current batch and writes
-nothing). Lightning 2.6's ModelCheckpoint, when no checkpoint was written yet, writes last.ckpt in
+nothing), at the end of the batch the ranks agreed to stop after (model/sigterm.py). Lightning 2.6's ModelCheckpoint, when no checkpoint was written yet, writes last.ckpt in
 `on_train_end`, after the fit loop has counted the cut-short epoch as completed: a resume would then start the
 next epoch, the rest of the stopped epoch's batches never trained, the data (SetEpoch) moved on. Written at the
 end of the last batch instead, the checkpoint holds the position inside the epoch, as every
@@ -44,17 +44,22 @@ class AtomicCheckpointIO(TorchCheckpointIO):
 
 
 class LastStepCheckpoint(Callback):
+    """Put after `AgreedSigterm` among the callbacks: it reads the stop that callback agrees on at a batch's end."""
+
     def on_train_batch_end(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule, outputs, batch,
                            batch_idx: int) -> None:
-        if trainer.should_stop or 0 <= trainer.max_steps <= trainer.global_step:
+        # SIGTERM too: Lightning raises after this batch, but after an epoch's last batch only once it has counted the
+        # epoch completed, and a checkpoint written then skips the next epoch when resumed
+        if trainer.should_stop or trainer.received_sigterm or 0 <= trainer.max_steps <= trainer.global_step:
             # ModelCheckpoint runs after this callback (Lightning puts it last) and writes last.ckpt itself at its own
             # every_n_train_steps
             save_last(trainer, unless_due=True)
 
     def on_exception(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule,
                      exception: BaseException) -> None:
-        # raised after a training batch's callbacks (or at an epoch's end), so the state is a whole step's; during
-        # validation the fit is between a step and its checkpoint, which the last periodic one stands for
+        # a SIGTERM that no batch end saw (AgreedSigterm not among the callbacks): raised after a training batch's
+        # callbacks (or at an epoch's end), so the state is a whole step's; during validation the fit is between a
+        # step and its checkpoint, which the last periodic one stands for
         if isinstance(exception, SIGTERMException) and not trainer.validating and not trainer.sanity_checking:
             save_last(trainer, unless_due=False)
 

@@ -248,8 +248,8 @@ class PretrainCLI(LightningCLI):
                 callbacks[index] = StepProgressBar()
         # a fit stopped at max_steps, max_time or by SIGTERM resumes inside its epoch; before the notice, which
         # names the checkpoint it wrote
-        callbacks.append(LastStepCheckpoint())
         callbacks.append(AgreedSigterm())  # SIGTERM: stop after the step (under DDP, the same one on all ranks)
+        callbacks.append(LastStepCheckpoint())  # after AgreedSigterm: it saves at the end of the step agreed on
         callbacks.append(self.notice)  # with or without a progress bar
         if type(self.trainer.strategy.checkpoint_io) is TorchCheckpointIO:  # a user's own plugin stays
             self.trainer.strategy.checkpoint_io = AtomicCheckpointIO()

@@ -11,8 +11,8 @@ this callback stands in for Lightning's handler: the signal only sets a flag (an
 Lightning's launcher started from this process, and to a handler the process had before the fit, as Lightning
 does); after every step the ranks take the maximum of their flags in one all-reduce of one number (a single
 process reads its own). When one was signalled, all of them set Lightning's own `received_sigterm` after that
-step, so that Lightning raises its SIGTERMException on every rank at the end of it, where `LastStepCheckpoint`
-writes last.ckpt; a step that validates runs its validation to its end first. Lightning restores the handlers it
+step, where `LastStepCheckpoint` (the next callback) writes last.ckpt, so that Lightning raises its
+SIGTERMException on every rank at the end of it; a step that validates runs its validation to its end first. Lightning restores the handlers it
 found when the fit ends.
 
 Under DDP the agreement costs the step no wait for the GPU: the all-reduced flag of step s is read at the end of

@@ -47,6 +47,16 @@ class Sigterm(lightning.Callback):
             os.kill(os.getpid(), signal.SIGTERM)
 
 
+class SigtermInAnEpochsLastStep(lightning.Callback):
+    """SIGTERM to this process during optimizer step 6, the last of the first epoch in these tests (18 training clips,
+    batches of 3; as the Trainer's callback `test_interrupt.SigtermInAnEpochsLastStep`)."""
+
+    def on_train_batch_start(self, trainer: lightning.Trainer, *_) -> None:
+        if trainer.global_step == 5:
+            assert trainer.num_training_batches == 6
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
 class SigtermToTheJob(lightning.Callback):
     """SIGTERM to this process and to every loader worker, from another process, as SLURM's `scancel` or a job's time
     limit sends it to each process of the job, at the first batch of step 4's validation (as the Trainer's callback
@@ -89,13 +99,19 @@ def test_a_fit_stopped_by_an_error_says_its_step_before_the_error(built_shards, 
     assert lines[-1].startswith("hauwm pretrain fit: error: DataLoader worker 0 (train split, pid 1) died")
 
 
-def test_sigterm_writes_the_checkpoint_of_the_step_it_stops_at_and_exits_143(built_shards, tmp_path, capsys):
-    assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.callbacks+=test_interrupt.Sigterm") == 143
+@pytest.mark.parametrize(("signal_at", "stop"), [("Sigterm", 4), ("SigtermInAnEpochsLastStep", 6)])
+def test_sigterm_writes_the_checkpoint_of_the_step_it_stops_at_and_exits_143(built_shards, tmp_path, capsys,
+                                                                              signal_at, stop):
+    """Resumed, the fit goes on exactly as one never stopped: inside an epoch, and after an epoch's last step (where
+    Lightning raises only after its end-of-epoch bookkeeping: a checkpoint written then skipped the next epoch)."""
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", f"--trainer.callbacks+=test_interrupt.{signal_at}") \
+        == 143
     last = tmp_path / "checkpoints" / "last.ckpt"
-    assert f"terminated (SIGTERM) at step 4; resume with --ckpt_path {last} (step 4, written " in capsys.readouterr().err
-    assert torch.load(last, weights_only=False)["global_step"] == 4
-    assert fit(built_shards, tmp_path, "--trainer.max_steps", "6", "--ckpt_path", "last") == 0  # and it resumes
-    assert fit(built_shards, tmp_path / "unbroken", "--trainer.max_steps", "6") == 0  # as a fit never stopped
+    assert f"terminated (SIGTERM) at step {stop}; resume with --ckpt_path {last} (step {stop}, written " in \
+        capsys.readouterr().err
+    assert torch.load(last, weights_only=False)["global_step"] == stop
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "9", "--ckpt_path", "last") == 0  # and it resumes
+    assert fit(built_shards, tmp_path / "unbroken", "--trainer.max_steps", "9") == 0  # as a fit never stopped
     resumed, unbroken = (torch.load(root / "checkpoints" / "last.ckpt", weights_only=False)["state_dict"]
                          for root in (tmp_path, tmp_path / "unbroken"))
     assert resumed.keys() == unbroken.keys() and all(torch.equal(resumed[key], unbroken[key]) for key in resumed)
@@ -120,10 +136,10 @@ def test_a_sigterm_handler_the_process_had_before_the_fit_still_runs(built_shard
     assert "terminated (SIGTERM) at step 4; resume with --ckpt_path " in capsys.readouterr().err
 
 
-def test_sigterm_before_a_step_that_validates_lets_it_validate_then_writes_its_checkpoint(built_shards, tmp_path,
-                                                                                         capsys):
+def test_sigterm_before_a_step_that_validates_lets_it_validate_and_writes_its_checkpoint(built_shards, tmp_path,
+                                                                                        capsys):
     """Lightning's own handler raised inside the validation of step 4 (after its first of 2 batches), where no
-    checkpoint is written."""
+    checkpoint is written; the checkpoint is step 4's, written at its end (before its validation)."""
     assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.val_check_interval", "4",
                "--data.val_batches", "2", "--trainer.callbacks+=test_interrupt.Sigterm") == 143
     last = tmp_path / "checkpoints" / "last.ckpt"
