@@ -100,6 +100,11 @@ def checkpoint_to_resume(config, subcommand: str) -> str | None:
     last-v1.ckpt beside it, and `--ckpt_path last` would then resume the old run)."""
     ckpt_path, last = config.get("ckpt_path"), last_checkpoint(config["trainer"])
     if ckpt_path == "last":
+        others = sorted(last.parent.glob("*.ckpt"), key=lambda path: path.stat().st_mtime)  # none where no directory
+        if not last.is_file() and others:  # written by a config without a save-last ModelCheckpoint
+            raise ConfigError(f"--ckpt_path last: {last.parent} holds checkpoints but no last.ckpt (the config's "
+                              "trainer.callbacks have no ModelCheckpoint with save_last: true); go on from the newest "
+                              f"with --ckpt_path {others[-1]}, and add such a ModelCheckpoint to the config")
         ckpt_path = config["ckpt_path"] = str(last) if last.is_file() else None
         rank_zero_only(print)(f"hauwm pretrain {subcommand}: --ckpt_path last: " + (
             f"resuming from {last}" if ckpt_path else f"no {last} yet, starting at step 0"), file=sys.stderr)
@@ -164,6 +169,11 @@ def settle_trainer(trainer, subcommand: str) -> None:
         print("hauwm pretrain: --trainer.enable_checkpointing false: the config's ModelCheckpoint is left "
               "out, so this run writes no checkpoint and cannot be resumed", file=sys.stderr)
         trainer.callbacks = [callback for callback in trainer.callbacks if callback not in checkpointers]
+    elif trainer.enable_checkpointing is not False and not any((getattr(callback, "init_args", None) or {}).get(
+            "save_last") for callback in checkpointers):
+        print("hauwm pretrain: no ModelCheckpoint with save_last: true among trainer.callbacks (a config that sets "
+              "trainer.callbacks replaces the whole list), so this fit writes no last.ckpt and `--ckpt_path last` "
+              "cannot resume it: keep the ModelCheckpoint of configs/pretrain/*.yaml in the list", file=sys.stderr)
     trainer.precision = trainer.precision or "32-true"  # None: Lightning's default
     if str(trainer.precision) not in PRECISIONS:  # half-precision weights: the step's float32 state breaks
         raise ConfigError(f"--trainer.precision {trainer.precision}: a fit runs in {', '.join(PRECISIONS[::2])} "

@@ -275,6 +275,24 @@ def test_ckpt_path_last_reads_the_directory_the_configs_model_checkpoint_names(b
     assert torch.load(elsewhere / "last.ckpt", weights_only=False)["global_step"] == 3
 
 
+def test_a_config_whose_callbacks_write_no_last_ckpt_is_named_and_its_checkpoints_not_restarted(built_shards,
+                                                                                                tmp_path, capsys):
+    """An overlay that sets trainer.callbacks replaces the whole list; without a save-last ModelCheckpoint in it,
+    `--ckpt_path last` used to start at step 0 again, silently, beside the run's own checkpoints."""
+    overlay = tmp_path / "callbacks.yaml"
+    overlay.write_text(yaml.safe_dump({"trainer": {"callbacks": [{"class_path": "data_pipeline.SetEpoch"}]}}))
+    # Lightning's own ModelCheckpoint then keeps one, after the validation of step 6
+    assert fit(built_shards, tmp_path / "run", "--config", str(overlay), "--trainer.max_steps", "7",
+               "--trainer.val_check_interval", "3") == 0
+    assert "no ModelCheckpoint with save_last: true among trainer.callbacks" in capsys.readouterr().err
+    assert fit(built_shards, tmp_path / "run", "--config", str(overlay), "--trainer.max_steps", "8", "--ckpt_path",
+               "last") == 2
+    newest = tmp_path / "run" / "checkpoints" / "epoch=0-step=6.ckpt"
+    assert (f"--ckpt_path last: {newest.parent} holds checkpoints but no last.ckpt (the config's trainer.callbacks "
+            f"have no ModelCheckpoint with save_last: true); go on from the newest with --ckpt_path {newest}") in \
+        capsys.readouterr().err
+
+
 def test_a_fresh_fit_where_an_earlier_fit_left_last_ckpt_is_refused(built_shards, tiny_run, tmp_path, capsys):
     """It would write last-v1.ckpt beside the old last.ckpt, which `--ckpt_path last` would later resume."""
     shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
