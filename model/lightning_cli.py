@@ -105,6 +105,9 @@ def checkpoint_to_resume(config, subcommand: str) -> str | None:
             raise ConfigError(f"--ckpt_path last: {last.parent} holds checkpoints but no last.ckpt (the config's "
                               "trainer.callbacks have no ModelCheckpoint with save_last: true); go on from the newest "
                               f"with --ckpt_path {others[-1]}, and add such a ModelCheckpoint to the config")
+        if subcommand == "validate" and not last.is_file():  # it would score a freshly initialised model
+            raise ConfigError(f"--ckpt_path last: no {last}: nothing to validate; pass the run's "
+                              "--trainer.default_root_dir, or a checkpoint file as --ckpt_path")
         ckpt_path = config["ckpt_path"] = str(last) if last.is_file() else None
         rank_zero_only(print)(f"hauwm pretrain {subcommand}: --ckpt_path last: " + (
             f"resuming from {last}" if ckpt_path else f"no {last} yet, starting at step 0"), file=sys.stderr)
@@ -119,6 +122,10 @@ def refuse_other_model(ckpt_path: str, config, subcommand: str) -> dict:
     another size); say when it is already at max_steps. -> its hyper_parameters."""
     checkpoint, saved_sizes = read_checkpoint(ckpt_path)
     checkpoint_world_model(checkpoint, saved_sizes, Path(ckpt_path))  # weights of another layout: refused
+    if subcommand == "fit" and "optimizer_states" not in checkpoint:  # Lightning: a KeyError when it restores them
+        raise ConfigError(f"{ckpt_path} holds the weights only (a ModelCheckpoint with save_weights_only: true): a fit "
+                          "cannot go on from it without its optimizers' state; export or validate it, or resume from "
+                          "a full checkpoint")
     max_steps, step = config["trainer"]["max_steps"], checkpoint.get("global_step", 0)
     if subcommand == "fit" and 0 <= max_steps <= step:
         rank_zero_only(print)(f"hauwm pretrain fit: {ckpt_path} is at step {step}, and --trainer.max_steps is "
@@ -225,10 +232,11 @@ class PretrainCLI(LightningCLI):
         super()._parse_ckpt_path()
         resumed = self.config[subcommand]["model"]
         changed = changed_on_resume(saved, resumed, asked_model, asked_k_max)
-        if subcommand == "fit" and changed:
-            raise ConfigError(f"{ckpt_path} was trained with {', '.join(changed[:3])}: a resume goes on with the "
-                              "settings the fit began with (only model.compile may change); drop the change, or "
-                              "start a new fit in another --trainer.default_root_dir")
+        if changed:  # validate would silently score with the checkpoint's settings, not the ones asked for
+            remedy = ("a resume goes on with the settings the fit began with (only model.compile may change); drop the "
+                      "change, or start a new fit in another --trainer.default_root_dir") if subcommand == "fit" else \
+                     "validate scores it with the settings it was trained with; drop the change"
+            raise ConfigError(f"{ckpt_path} was trained with {', '.join(changed[:3])}: {remedy}")
         resumed["compile"] = asked_model["compile"]
 
     def before_instantiate_classes(self) -> None:

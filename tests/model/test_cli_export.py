@@ -485,3 +485,30 @@ def test_validate_scores_a_checkpoint_and_writes_no_checkpoint(built_shards, tin
     assert not [w for w in recwarn if "dirpath has changed" in str(w.message)]
     # the checkpoint callbacks are left out on purpose; Lightning's advice to add them back is not shown
     assert not [w for w in recwarn if "callbacks used to create the checkpoint" in str(w.message)]
+
+
+def test_validate_refuses_settings_it_would_ignore_and_a_missing_last_checkpoint(built_shards, tiny_run, tmp_path,
+                                                                               capsys):
+    """LightningCLI scores a checkpoint with the settings it was trained with: a changed one was silently dropped,
+    and `--ckpt_path last` without a checkpoint scored a freshly initialised model, exit status 0."""
+    validate = ["validate", "--config", str(TINY_CONFIG), "--data.shards", str(built_shards), *RUN_ARGS]
+    checkpoint = tiny_run / "checkpoints" / "last.ckpt"
+    assert main([*validate, "--trainer.default_root_dir", str(tmp_path), "--ckpt_path", str(checkpoint),
+                 "--model.kl_scale", "0"]) == 2
+    assert (f"{checkpoint} was trained with model.kl_scale 1.0 (asked: 0.0): validate scores it with the settings it "
+            "was trained with") in capsys.readouterr().err
+    assert main([*validate, "--trainer.default_root_dir", str(tmp_path / "typo"), "--ckpt_path", "last"]) == 2
+    assert f"--ckpt_path last: no {tmp_path / 'typo' / 'checkpoints' / 'last.ckpt'}: nothing to validate" in \
+        capsys.readouterr().err
+
+
+def test_a_fit_refuses_to_resume_a_weights_only_checkpoint(built_shards, tiny_run, tmp_path, capsys):
+    checkpoint = torch.load(tiny_run / "checkpoints" / "last.ckpt", weights_only=False)
+    for key in ("optimizer_states", "lr_schedulers"):  # what a ModelCheckpoint(save_weights_only=True) leaves out
+        checkpoint.pop(key, None)
+    (tmp_path / "checkpoints").mkdir()
+    torch.save(checkpoint, tmp_path / "checkpoints" / "last.ckpt")
+    assert fit(built_shards, tmp_path, "--ckpt_path", "last", "--trainer.max_steps", str(RUN_STEPS + 1)) == 2
+    err = capsys.readouterr().err
+    assert "last.ckpt holds the weights only (a ModelCheckpoint with save_weights_only: true): a fit cannot go on" in err
+    assert "Traceback" not in err
