@@ -31,7 +31,8 @@ def model_label(model: FrozenWorldModel, name: str) -> str:
     provenance = model.export_config.get("provenance", {})
     if not provenance:
         return name
-    hcu = f"HCU λ₀={provenance['lambda_init']:g}" if provenance.get("hcu") else "no HCU"
+    lambda_init = provenance.get("lambda_init")  # a number or absent (load_frozen checks)
+    hcu = ("HCU λ₀=" + ("?" if lambda_init is None else f"{lambda_init:g}")) if provenance.get("hcu") else "no HCU"
     return (f"{name} ({hcu}, M={model.config.ensemble}, K_max={provenance.get('k_max', '?')}, "
             f"step {provenance.get('global_step', '?')})")
 

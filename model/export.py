@@ -115,11 +115,29 @@ def read_config(export_dir: str | Path) -> dict[str, Any]:
         raise ExportError(f"{path} lacks the \"world_model\" settings; re-export the checkpoint")
     if not isinstance(config.get("provenance", {}), dict):
         raise ExportError(f"{path}: \"provenance\" is {config['provenance']!r}, not an object; re-export the checkpoint")
+    for key, (test, wanted) in PROVENANCE_KINDS.items():  # each may be absent or null: not recorded
+        if (value := config.get("provenance", {}).get(key)) is not None and not test(value):
+            raise ExportError(f"{path}: provenance.{key} is {json.dumps(value)[:40]}, not {wanted}; re-export the "
+                              "checkpoint")
     try:
         WorldModelConfig.from_dict(config["world_model"])
     except ConfigError as err:
         raise ExportError(f"{path}: {err}; re-export the checkpoint with this version of hauwm") from None
     return config
+
+
+def whole(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+# what `world_model_from_checkpoint` records, as the analysis and fine-tuning read it: (test, what it wants)
+PROVENANCE_KINDS = {"global_step": (whole, "a whole number"), "k_max": (lambda v: whole(v) and v >= 1, "a whole number ≥ 1"),
+                    "hcu": (lambda v: isinstance(v, bool), "true or false"), "lambda_init": (number, "a number"),
+                    "lambda_final": (number, "a number"), "checkpoint": (lambda v: isinstance(v, str), "a path")}
 
 
 def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> FrozenWorldModel:

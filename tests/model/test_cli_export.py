@@ -105,6 +105,15 @@ def test_export_errors_are_clear(tiny_export, tmp_path):
     (wrong_shape / "weights.safetensors").unlink()
     with pytest.raises(ExportError, match="weights.safetensors not found"):
         load_frozen(wrong_shape)
+    edited = tmp_path / "edited"
+    shutil.copytree(tiny_export, edited)
+    for key, value, wanted in (("k_max", "5", "a whole number ≥ 1"), ("lambda_init", "1.0", "a number"),
+                               ("hcu", 1, "true or false")):  # each was a TypeError or ValueError in `analyze`
+        provenance = {**config["provenance"], key: value}
+        (edited / "config.json").write_text(json.dumps({**config, "provenance": provenance}))
+        with pytest.raises(ExportError, match=rf"config.json: provenance.{key} is {json.dumps(value)}, not {wanted}; "
+                                              "re-export the checkpoint"):
+            load_frozen(edited)
 
 
 def test_a_version_1_export_still_loads(tiny_export, as_v1_export, tmp_path, fake_batch):
