@@ -106,6 +106,10 @@ def main(argv: list[str] | None = None) -> int:
                 lightning_cli(argv)
             except MisconfigurationException as err:  # a --trainer value Lightning itself refuses (devices 0, max_steps -5)
                 raise ConfigError(f"a --trainer setting Lightning refuses: {err}") from None
+            except ValueError as err:  # one it refuses only once it knows an epoch's length, as a plain ValueError
+                if "`val_check_interval`" not in str(err):
+                    raise
+                raise ConfigError(f"a --trainer setting Lightning refuses: {str(err).strip()}") from None
             return 0
         if command == "export":
             return export_command(argv[1:])

@@ -521,3 +521,11 @@ def test_a_fit_refuses_to_resume_a_weights_only_checkpoint(built_shards, tiny_ru
     err = capsys.readouterr().err
     assert "last.ckpt holds the weights only (a ModelCheckpoint with save_weights_only: true): a fit cannot go on" in err
     assert "Traceback" not in err
+
+
+def test_validation_by_epoch_with_an_interval_longer_than_an_epoch_is_an_error_not_a_traceback(built_shards, tmp_path,
+                                                                                              capsys):
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "2", "--trainer.check_val_every_n_epoch", "1") == 2
+    err = capsys.readouterr().err
+    assert "error: a --trainer setting Lightning refuses: `val_check_interval` (100) must be less than or equal to " \
+           "the number of the training batches (6)" in err and "Traceback" not in err
