@@ -38,6 +38,8 @@ from model.progress import StepProgressBar
 from model.sigterm import AgreedSigterm
 
 PRECISIONS = ("32-true", "32", "16-mixed", "16", "bf16-mixed", "bf16")  # each with Lightning's other name for it
+DATA_STREAM = ("train_split", "batch_size", "seq_len", "shuffle_buffer", "seed")  # the data settings that shape the
+#                                                                               batches a resumed epoch goes on with
 OPTIMIZER_KEYS = ("optimizer", "lr_scheduler")  # LightningCLI's, left out: the module configures its own
 
 
@@ -130,6 +132,13 @@ def refuse_other_model(ckpt_path: str, config, subcommand: str) -> dict:
     if subcommand == "fit" and 0 <= max_steps <= step:
         rank_zero_only(print)(f"hauwm pretrain fit: {ckpt_path} is at step {step}, and --trainer.max_steps is "
                               f"{max_steps}: nothing to train (raise max_steps to go on)", file=sys.stderr)
+    data_saved, data_asked = checkpoint.get("datamodule_hyper_parameters") or {}, config["data"]
+    changed = [f"data.{key} {data_saved[key]!r} (asked: {data_asked[key]!r})" for key in DATA_STREAM
+               if key in data_saved and data_saved[key] != data_asked[key]]
+    if subcommand == "fit" and changed:  # allowed (a resume on another number of GPUs changes the batch size)
+        rank_zero_only(print)(f"hauwm pretrain fit: {ckpt_path} was trained with {', '.join(changed)}: the rest of its "
+                              "epoch is not what an unbroken run would have read (clips may repeat or be left out), "
+                              "later epochs follow the new settings", file=sys.stderr)
     saved = checkpoint["hyper_parameters"]
     refuse_other_size(saved, WorldModelConfig(**config["model"]["world_model"].as_dict()), str(ckpt_path))
     if "world_model" not in saved:  # read_checkpoint found the sizes, flat at the top level

@@ -253,6 +253,15 @@ def test_ckpt_path_last_resumes_the_runs_newest_checkpoint_or_starts_afresh(buil
         capsys.readouterr().err
 
 
+def test_a_resume_that_changes_how_batches_are_drawn_says_so(built_shards, tiny_run, tmp_path, capsys):
+    """Allowed (another number of GPUs changes the per-GPU batch size), but the epoch under way is not exact."""
+    shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
+    assert fit(built_shards, tmp_path, "--ckpt_path", "last", "--trainer.max_steps", str(RUN_STEPS + 1),
+               "--data.batch_size", "2") == 0
+    assert (f"last.ckpt was trained with data.batch_size 3 (asked: 2): the rest of its epoch is not what an unbroken "
+            "run would have read") in capsys.readouterr().err
+
+
 def test_a_resume_that_changes_a_model_setting_is_refused(built_shards, tiny_run, tmp_path, capsys):
     shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
     for flags, said in ((["--model.lr", "0.5"], "model.lr 0.001 (asked: 0.5)"),
