@@ -257,7 +257,8 @@ class PretrainCLI(LightningCLI):
         if config.data.shards:  # none: ShardDataModule says what to pass
             refuse_other_frame_size(config.data.shards, "--data.shards")  # and a missing or unfinished directory
         if config.ckpt_path and not Path(config.ckpt_path).is_file():
-            raise ConfigError(f"--ckpt_path {config.ckpt_path} does not exist: pass a checkpoint file, or `last` "
+            what = "is a directory" if Path(config.ckpt_path).is_dir() else "does not exist"
+            raise ConfigError(f"--ckpt_path {config.ckpt_path} {what}: pass a checkpoint file, or `last` "
                               "for the run's newest (e.g. RUN/checkpoints/last.ckpt)")
         if self.subcommand == "validate" and not config.ckpt_path:
             print("hauwm pretrain validate: no --ckpt_path, so this scores a freshly initialised model", file=sys.stderr)

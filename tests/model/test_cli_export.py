@@ -183,6 +183,8 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--trainer.check_val_every_n_epoch", "0"], "--trainer.check_val_every_n_epoch 0: validate every N >= 1"),
         (["--trainer.max_steps", "-5"], "a --trainer setting Lightning refuses: `max_steps` must be a non-negative"),
         (["--trainer.devices", "0"], "a --trainer setting Lightning refuses: `Trainer(devices='0')` value is not"),
+        (["--ckpt_path", "/"], "--ckpt_path / is a directory: pass a checkpoint file"),
+        (["--ckpt_path", "/nonexistent/last.ckpt"], "--ckpt_path /nonexistent/last.ckpt does not exist: pass a"),
     ],
 )
 def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, capsys, flags, message):
