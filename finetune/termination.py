@@ -63,3 +63,26 @@ def terminable() -> Iterator[StopRequest]:
     request = StopRequest()
     with handling_sigterm(request.note):
         yield request
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """SIGINT and SIGTERM wait until the block has run (a write that must not be cut short: a dataset's episode), then
+    reach the handlers they would have reached, as if they came then. In the main thread only (see above)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+    before = {signum: signal.signal(signum, lambda signum, frame: came.append(signum))
+              for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+    if came:
+        handler = before[came[0]]
+        if callable(handler):
+            handler(came[0], None)
+        elif handler == signal.SIG_DFL:  # its default action (ending the process), now that the block is done
+            signal.raise_signal(came[0])

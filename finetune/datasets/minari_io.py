@@ -34,6 +34,8 @@ import gymnasium
 import numpy as np
 from tqdm import tqdm
 
+from finetune.termination import signals_deferred
+
 IMAGE_SIZE = 64  # the frames the world model is trained on
 IMAGE_KEYS = ("pixels", "image", "rgb", "observation", "obs")  # Dict observation entries tried in this order
 MAX_ASPECT = 1.25  # "square-ish": larger/smaller side at most this, else resizing would distort the scene
@@ -333,35 +335,41 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
     dataset, with_success, stopped = None, None, False
     iterator = iter(episodes)
     try:
-        while True:
+        while not stopped:
             try:
-                episode = next(iterator, None)
+                if (episode := next(iterator, None)) is None:
+                    break
+                with signals_deferred():  # a signal in the middle of writing an episode waits for its end
+                    check_room(path, episode)
+                    if dataset is None:
+                        with_success = "success" in episode
+                        observation_space = gymnasium.spaces.Box(0, 255, episode["obs"].shape[2:] + (3,), np.uint8)
+                        action_space = gymnasium.spaces.Box(-1.0, 1.0, episode["action"].shape[1:], np.float32)
+                        with warnings.catch_warnings():  # Minari's reminders to name an author, a code link, an env
+                            warnings.simplefilter("ignore", UserWarning)
+                            dataset = minari.create_dataset_from_buffers(
+                                dataset_id, [], observation_space=observation_space, action_space=action_space,
+                                algorithm_name=str(metadata.get("source", "unknown")), description=description,
+                                jpeg_encoding=jpeg)
+                    if ("success" in episode) != with_success:
+                        raise ValueError("episodes of one dataset must all have, or all lack, a success flag")
+                    dataset.update_dataset_from_buffer([_episode_buffer(episode)])
             except KeyboardInterrupt:
                 if not (keep_on_interrupt and dataset is not None):
                     raise
-                stopped, episode = True, None  # between two episodes: those written make a whole dataset
-            if episode is None:
-                break
-            check_room(path, episode)
-            if dataset is None:
-                with_success = "success" in episode
-                observation_space = gymnasium.spaces.Box(0, 255, episode["obs"].shape[2:] + (3,), np.uint8)
-                action_space = gymnasium.spaces.Box(-1.0, 1.0, episode["action"].shape[1:], np.float32)
-                with warnings.catch_warnings():  # Minari's reminders to name an author, a code link, an eval env
-                    warnings.simplefilter("ignore", UserWarning)
-                    dataset = minari.create_dataset_from_buffers(
-                        dataset_id, [], observation_space=observation_space, action_space=action_space,
-                        algorithm_name=str(metadata.get("source", "unknown")), description=description,
-                        jpeg_encoding=jpeg)
-            if ("success" in episode) != with_success:
-                raise ValueError("episodes of one dataset must all have, or all lack, a success flag")
-            dataset.update_dataset_from_buffer([_episode_buffer(episode)])
+                stopped = True  # between two episodes: those written make a whole dataset
         if dataset is None:
             raise DatasetError(f"dataset {dataset_id!r}: no episodes to write")
         extra: dict[str, Any] = {METADATA_KEY: {**metadata, "has_success": with_success}}
         if metadata.get("task") in REFERENCE_RETURNS:
             extra["ref_min_score"], extra["ref_max_score"] = map(float, REFERENCE_RETURNS[metadata["task"]])
-        dataset.storage.update_metadata(extra)  # a dataset without it would pass for one of unknown task
+        try:
+            with signals_deferred():
+                dataset.storage.update_metadata(extra)  # a dataset without it would pass for one of unknown task
+        except KeyboardInterrupt:  # after it: the dataset is whole
+            if not keep_on_interrupt:
+                raise
+            stopped = True
     except BaseException:
         shutil.rmtree(path, ignore_errors=True)
         raise

@@ -25,7 +25,7 @@ from minari.data_collector import EpisodeBuffer
 
 from finetune.datasets import DatasetError, list_datasets, load_episodes, merge_datasets, write_dataset
 from finetune.datasets.minari_io import KeptOnInterrupt, hauwm_metadata, open_dataset
-from finetune.datasets.cli import main
+from finetune.datasets.cli import main, sigterm_as_interrupt
 from finetune.datasets.sources import RandomPolicy
 from finetune.envs import make_env
 from finetune.replay import KEYS, Replay
@@ -178,6 +178,26 @@ def test_sigterm_while_collecting_keeps_the_finished_episodes_like_ctrl_c(datase
     assert open_dataset("test/cut-v0").total_episodes == 1
     assert hauwm_metadata(open_dataset("test/cut-v0"))["task"] == TASK
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_while_an_episode_is_written_waits_for_its_end(random_episodes, monkeypatch, datasets_root, signum):
+    """Ctrl-C or SIGTERM in the middle of an episode's write (the HDF5 part of a collection) deleted the whole
+    dataset: only a signal between episodes kept the episodes finished."""
+    write = minari.MinariDataset.update_dataset_from_buffer
+    writes = []
+
+    def signalled_during_the_second(dataset, buffers) -> None:
+        writes.append(len(writes))
+        if len(writes) == 2:
+            os.kill(os.getpid(), signum)  # Python runs the handler at once, in the middle of this write
+        write(dataset, buffers)
+
+    monkeypatch.setattr(minari.MinariDataset, "update_dataset_from_buffer", signalled_during_the_second)
+    with sigterm_as_interrupt(), pytest.raises(KeptOnInterrupt) as stopped:
+        write_dataset("test/kept-v0", iter(random_episodes[:3]), {"task": TASK}, keep_on_interrupt=True)
+    assert stopped.value.dataset.total_episodes == 2 and writes == [0, 1]
+    assert hauwm_metadata(open_dataset("test/kept-v0"))["task"] == TASK
 
 
 def test_a_write_that_fails_leaves_no_partial_dataset(random_episodes, monkeypatch, datasets_root):
