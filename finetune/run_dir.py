@@ -5,7 +5,8 @@ replay's episodes in `replay/` (finetune/replay.py) and the CSV logs (finetune/l
 (save_checkpoint) holds the agent's trainable weights and its optimisers, torch's random state (and CUDA's),
 the replay sampler's state, the run's counters, its settings and its fingerprint (the sha256 of the frozen export's
 weights and, for offline RL and imitation, of the dataset's files); not the frozen export itself, the dataset nor
-the replay's episodes. `best.pt` is the same, written by keep_best at each
+the replay's episodes; a diverged agent (a weight not finite) is not written (DivergedError), so as not to replace
+the last good checkpoint. `best.pt` is the same, written by keep_best at each
 evaluation with the highest mean return so far (its counters keep best_return and best_at).
 
 Starting a run in a directory that holds a checkpoint resumes it (`resume`). Reading any checkpoint
@@ -32,7 +33,7 @@ import numpy as np
 import torch
 import yaml
 
-from finetune.agent import Agent
+from finetune.agent import Agent, DivergedError
 from finetune.config import FinetuneConfig, FinetuneError, load_config, step_unit
 from model.config import ConfigError
 from model.export import WEIGHTS_FILE, torch_load_failure
@@ -111,7 +112,12 @@ def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dic
     """Write the agent's trainable weights, its optimisers, torch's random state(s), `counters`, cfg and the run's
     fingerprint to `path` (a .tmp file, then renamed: an interrupted write keeps the last checkpoint). `rng`: the
     replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
-    state = {"agent": agent.trainable_state_dict(), "optimizers": agent.optimizer_state_dicts(),
+    weights = agent.trainable_state_dict()
+    if diverged := [name for name, value in weights.items() if value.is_floating_point() and not value.isfinite().all()]:
+        raise DivergedError(f"the agent's weights are not finite (NaN or inf; e.g. {diverged[0]}): the agent has "
+                            f"diverged; {path.name} was not written, so checkpoint.pt and best.pt hold the agent as "
+                            "last saved; lower model_lr, actor_lr or critic_lr, and start a new run")
+    state = {"agent": weights, "optimizers": agent.optimizer_state_dicts(),
              "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state(),
              **fingerprint}
     if agent.device.type == "cuda":  # the world model's noise and the actor's samples are drawn there

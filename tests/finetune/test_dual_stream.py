@@ -193,6 +193,25 @@ def test_an_actor_that_gives_nan_is_refused_by_name(export_dir, tiny_config):
         agent.act(obs, latent, prev_action, explore=False)
 
 
+def test_a_diverged_agent_never_replaces_the_last_good_checkpoint(export_dir, tiny_config, tmp_path):
+    """Offline RL acts only at evaluations: a run that diverged between two went on writing NaN weights over its
+    last good checkpoint.pt, every checkpoint_every updates."""
+    from finetune.run_dir import run_fingerprint, save_checkpoint
+
+    cfg = tiny_config()
+    agent = make_agent(cfg, export_dir)
+    checkpoint = tmp_path / "checkpoint.pt"
+    fingerprint = run_fingerprint(cfg, export_dir)
+    save_checkpoint(checkpoint, agent, cfg, {"env_steps": 1}, fingerprint)
+    good = checkpoint.read_bytes()
+    with torch.no_grad():
+        next(agent.behavior.critic.parameters()).view(-1)[0] = float("nan")
+    with pytest.raises(DivergedError, match=r"the agent's weights are not finite \(NaN or inf; e.g. behavior.critic.* "
+                                            r"checkpoint.pt was not written"):
+        save_checkpoint(checkpoint, agent, cfg, {"env_steps": 2}, fingerprint)
+    assert checkpoint.read_bytes() == good and not list(tmp_path.glob("*.tmp"))
+
+
 def test_one_envs_non_finite_action_is_refused_too(export_dir, tiny_config):
     """A NaN in one env's row (its state diverged; the others' actions are finite) is refused as well."""
     agent = make_agent(tiny_config(), export_dir)
