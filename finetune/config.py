@@ -139,6 +139,8 @@ class FinetuneConfig:
                 if value is not None and not (math.isfinite(value) and allowed(value)):
                     rule = rule if math.isfinite(value) else "a finite number"
                     raise ConfigError(f"setting {name} must be {rule}, got {value!r}")
+        if not str(self.logdir).strip():  # an unset shell variable: the run would fill the current directory
+            raise ConfigError("setting logdir is empty (an unset shell variable?): name the run's directory")
         if self.train_every is None:  # DreamerV2 and APV update once every 5 agent steps, each action_repeat frames
             self.train_every = 5 * self.action_repeat
         if self.paradigm == "offline" and self.penalty != "max_std" and self.penalty_scale > 0 and self.model_heads < 2:

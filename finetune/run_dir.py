@@ -47,10 +47,12 @@ LOCK = ".lock"
 def exclusive(logdir: Path) -> Iterator[None]:
     """Hold an exclusive lock on `logdir` (released when the run ends, also if it is killed): two runs
     writing one run directory would interleave their replay files and overwrite each other's checkpoint. A run that
-    wrote nothing but its lock (one refused at its start) leaves no trace: the lock and the directories it made go."""
+    wrote nothing but its lock (one refused at its start) leaves no trace: the lock and the directories it made go
+    (a directory that held files before keeps them)."""
     made = [directory for directory in (logdir, *logdir.parents) if not directory.exists()]  # deepest first
     lock_made = not (logdir / LOCK).exists()
     logdir.mkdir(parents=True, exist_ok=True)
+    there = {path.name for path in logdir.iterdir()}
     with open(logdir / LOCK, "a+") as lock:
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -64,7 +66,7 @@ def exclusive(logdir: Path) -> Iterator[None]:
         try:
             yield
         finally:
-            if lock_made and [path.name for path in logdir.iterdir()] == [LOCK]:
+            if lock_made and {path.name for path in logdir.iterdir()} == there | {LOCK}:
                 (logdir / LOCK).unlink()
                 for directory in made:
                     with contextlib.suppress(OSError):  # another process has written there meanwhile: it stays
@@ -213,14 +215,25 @@ def refuse_changed_settings(cfg: FinetuneConfig, written: dict[str, object], pat
 
 
 def refuse_other_run(cfg: FinetuneConfig) -> None:
-    """A FinetuneError if cfg.logdir holds the config.yaml of a run that stopped before its first checkpoint with
-    other settings than cfg's (outside RESUMABLE): starting again there would train on that run's replay episodes
-    and overwrite its config.yaml."""
-    path = Path(cfg.logdir) / "config.yaml"
+    """A FinetuneError if cfg.logdir (which holds no checkpoint) holds the config.yaml of a run that stopped before its
+    first checkpoint with other settings than cfg's (outside RESUMABLE): starting again there would train on that
+    run's replay episodes and overwrite its config.yaml; or files of something else than a run (a user's, an
+    export), or another program's config.yaml."""
+    logdir = Path(cfg.logdir)
+    path = logdir / "config.yaml"
+    if not path.is_file():  # this run's own lock aside, files of something else: mixed in, or overwritten
+        if others := sorted(entry.name for entry in logdir.iterdir() if entry.name != LOCK):
+            raise FinetuneError(f"{logdir} holds files but no `hauwm finetune` run (no config.yaml nor checkpoint; e.g. "
+                                f"{others[0]}), which this run would mix with its own or overwrite: train in another "
+                                "--logdir, or empty that one first")
+        return
     try:
-        written = yaml.safe_load(path.read_text()) if path.is_file() else None
+        written = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError, UnicodeDecodeError):
         written = None  # unreadable: nothing to compare with; it is written again
+    if isinstance(written, dict) and not {"task", "agent"} <= written.keys():
+        raise FinetuneError(f"{path} is not the config of a `hauwm finetune` run (it has no task or agent), and would "
+                            "be overwritten: train in another --logdir")
     if isinstance(written, dict) and (changed := changed_settings(cfg, written)):
         raise FinetuneError(f"{cfg.logdir} holds a run with {', '.join(changed[:3])} that stopped before its first "
                             f"checkpoint; its replay episodes would train this one: train in another --logdir, or "

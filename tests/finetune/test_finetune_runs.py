@@ -148,6 +148,24 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     assert f"{checkpoint} cannot be read (it is truncated or not a checkpoint" in err and "Traceback" not in err
 
 
+def test_a_logdir_of_something_else_is_refused_and_left_as_it_was(export_dir, tmp_path, capsys):
+    """Its files were overwritten (config.yaml) or mixed with the run's (eval.csv, a replay/ of another task)."""
+    run = ["--config", "configs/finetune/demo.yaml", "--steps", "2", "--pretrained", str(export_dir)]
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "eval.csv").write_text("important\n")
+    assert main(run + ["--logdir", str(mine)]) == 2
+    assert (f"{mine} holds files but no `hauwm finetune` run (no config.yaml nor checkpoint; e.g. eval.csv), which "
+            "this run would mix with its own or overwrite") in capsys.readouterr().err
+    (mine / "config.yaml").write_text("trainer:\n  max_steps: 10\n")  # another program's
+    assert main(run + ["--logdir", str(mine)]) == 2
+    assert f"{mine / 'config.yaml'} is not the config of a `hauwm finetune` run" in capsys.readouterr().err
+    assert sorted(path.name for path in mine.iterdir()) == ["config.yaml", "eval.csv"]
+    assert (mine / "eval.csv").read_text() == "important\n"
+    assert main(run + ["--logdir", ""]) == 2
+    assert "setting logdir is empty (an unset shell variable?)" in capsys.readouterr().err
+
+
 def test_a_checkpoint_that_cannot_be_written_keeps_the_one_before(tiny_config, tmp_path, monkeypatch):
     cfg = tiny_config(agent="scratch", logdir=str(tmp_path))
     agent = build_agent(cfg, 1, None, torch.device("cpu"))
