@@ -165,6 +165,9 @@ def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> F
             f"{weights_path} does not match {Path(export_dir) / CONFIG_FILE}: " + "; ".join(sorted(problems)[:8])
             + (f" (and {len(problems) - 8} more)" if len(problems) > 8 else "")
         )
+    if diverged := sorted(name for name, t in tensors.items() if t.is_floating_point() and not t.isfinite().all()):
+        raise ExportError(f"{weights_path}: {diverged[0]} holds NaN or inf ({len(diverged)} tensors do): the checkpoint "
+                          "it was exported from had diverged; export an earlier checkpoint of that fit")
     model.load_state_dict(tensors)
     return model.to(device).requires_grad_(False).eval()
 

@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import pickle
+import re
 import shutil
 import warnings
 from pathlib import Path
@@ -14,6 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from safetensors.torch import load_file, save_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from model.cli import main
@@ -105,6 +107,15 @@ def test_export_errors_are_clear(tiny_export, tmp_path):
     (wrong_shape / "weights.safetensors").unlink()
     with pytest.raises(ExportError, match="weights.safetensors not found"):
         load_frozen(wrong_shape)
+    diverged = tmp_path / "diverged"
+    shutil.copytree(tiny_export, diverged)
+    tensors = load_file(diverged / "weights.safetensors")
+    name = sorted(tensors)[0]
+    tensors[name].view(-1)[0] = float("nan")
+    save_file(tensors, diverged / "weights.safetensors")
+    with pytest.raises(ExportError, match=rf"weights.safetensors: {re.escape(name)} holds NaN or inf \(1 tensors do\): "
+                                          "the checkpoint it was exported from had diverged"):
+        load_frozen(diverged)
     edited = tmp_path / "edited"
     shutil.copytree(tiny_export, edited)
     for key, value, wanted in (("k_max", "5", "a whole number ≥ 1"), ("lambda_init", "1.0", "a number"),
