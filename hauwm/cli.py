@@ -74,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     if stage not in STAGES and stage not in ("-h", "--help"):
         print(f"hauwm: unknown stage {stage!r}\n\n{usage()}", file=sys.stderr)
         return 2
+    if os.environ.get("MINARI_DATASETS_PATH"):  # Minari joins a relative root to itself: made absolute here, once
+        os.environ["MINARI_DATASETS_PATH"] = os.path.abspath(os.environ["MINARI_DATASETS_PATH"])
     try:
         try:
             if stage not in STAGES:

@@ -429,3 +429,16 @@ def test_collect_from_a_run_whose_replay_holds_another_tasks_episode_writes_noth
     err = capsys.readouterr().err
     assert f"{rundir / 'replay' / '000001-5.npz'}: its actions have 1 dimensions, the run's 4" in err
     assert "Traceback" not in err and "test/mixed-v0" not in list_datasets()  # the partial dataset is deleted
+
+
+def test_a_relative_datasets_path_is_read_from_the_directory_the_command_ran_in(tmp_path, monkeypatch, capsys):
+    """Minari joined a relative root to itself: `minari/hauwm/x/data/minari/hauwm/x/data/main_data.hdf5`."""
+    from hauwm.cli import main as hauwm
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MINARI_DATASETS_PATH", "relative-root")
+    assert hauwm(["datasets", "collect", "--policy", "random", "--task", TASK, "--episodes", "1", "--dataset-id",
+                  "test/relative-v0", "--set", "time_limit=3", "--no-progress"]) == 0
+    assert hauwm(["datasets", "inspect", "test/relative-v0"]) == 0
+    assert "test/relative-v0" in capsys.readouterr().out
+    assert (tmp_path / "relative-root" / "test" / "relative-v0" / "data" / "main_data.hdf5").is_file()
