@@ -205,8 +205,9 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
             continue  # None: "the export's", "the suite's own" or "not given"
         if types[name] is bool and not isinstance(value, bool):
             raise ConfigError(f"setting {name} must be true or false, got {value!r}")
-        if types[name] in (str, str | None) and not isinstance(value, str):
-            raise ConfigError(f"setting {name} must be text, got {value!r}")
+        if types[name] in (str, str | None) and not isinstance(value, str):  # YAML reads yes, on, true as true
+            wanted = f"one of {', '.join(CHOICES[name])}" if name in CHOICES else "text"
+            raise ConfigError(f"setting {name} must be {wanted}, got {value!r}")
         if types[name] in (int, float, int | None, float | None):
             try:
                 if isinstance(value, bool) or not isinstance(value, (int, float, str)):

@@ -51,7 +51,10 @@ class MetaWorldEnv(PixelEnv):
         if time_limit * action_repeat > EPISODE_SIM_STEPS:
             raise ValueError(
                 f"{name}: time_limit {time_limit} x action_repeat {action_repeat} exceeds Meta-World's "
-                f"{EPISODE_SIM_STEPS}-step episodes; use time_limit <= {EPISODE_SIM_STEPS // action_repeat}"
+                f"{EPISODE_SIM_STEPS}-step episodes; " + (
+                    f"use time_limit <= {EPISODE_SIM_STEPS // action_repeat}" if action_repeat <= EPISODE_SIM_STEPS
+                    else f"lower action_repeat (at most {EPISODE_SIM_STEPS}, with time_limit × action_repeat ≤ "
+                         f"{EPISODE_SIM_STEPS})")
             )
         self._env = gymnasium.make(
             "Meta-World/MT1",

@@ -341,7 +341,8 @@ def test_tasks_without_a_scripted_expert_say_what_to_use(capsys):
 def test_bad_env_settings_are_refused(capsys):
     base = ["collect", "--task", TASK, "--policy", "random", "--episodes", "1", "--dataset-id", "test/x-v0"]
     for setting, message in (("time_limit=abc", "time_limit must be a whole number"), ("fast_render=2", "true or false"),
-                             ("image_size=32", "not an env setting"), ("time_limit=600", "exceeds Meta-World's")):
+                             ("image_size=32", "not an env setting"), ("time_limit=600", "exceeds Meta-World's 500-step episodes; use time_limit <= 500"),
+                             ("action_repeat=1000", "exceeds Meta-World's 500-step episodes; lower action_repeat (at most 500")):
         assert main([*base, "--set", setting]) == 2, setting
         assert message in capsys.readouterr().err, setting
 

@@ -130,6 +130,8 @@ def test_a_config_that_is_not_yaml_or_a_value_of_another_kind_is_refused_by_name
         load_config(None, dict([parse_override("steps=[1")]))  # not YAML: the text, judged by the setting
     with pytest.raises(ConfigError, match="setting task must be text, got 5"):
         load_config(None, dict([parse_override("task=5")]))
+    with pytest.raises(ConfigError, match="setting compile must be one of .*reduce-overhead.*, got True"):
+        load_config(None, dict([parse_override("compile=yes")]))  # YAML's yes: true
     assert load_config(None, dict([parse_override("dataset=null")])).dataset is None
 
 
