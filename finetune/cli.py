@@ -135,6 +135,10 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"{args.config} is a config for {cfg.paradigm} training (paradigm: {cfg.paradigm}): run "
                               f"`{COMMANDS[cfg.paradigm]} --config {args.config} …`, or give `{COMMANDS[paradigm]}` "
                               f"a config from {CONFIG_DIRS[paradigm]}/")
+        for other, (owner, flag, setting, _) in SUBCOMMANDS.items():  # a setting of another paradigm: ignored
+            if getattr(cfg, setting) is not None and owner != paradigm:
+                raise ConfigError(f"setting {setting} belongs to `hauwm finetune {other} {flag} ID`, not to "
+                                  f"`{COMMANDS[paradigm]}`: drop it")
         pretrained = args.pretrained
         if cfg.paradigm == "offline" and cfg.num_envs != 1:  # it steps no training env; a user would expect speed
             print(f"{parser(subcommand).prog}: note: offline RL steps no training env (evaluation plays one), so "

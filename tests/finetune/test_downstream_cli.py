@@ -47,6 +47,11 @@ def test_a_config_of_another_paradigm_is_refused_with_the_right_command(runners,
     assert "a config from configs/imitation/" in capsys.readouterr().err
     assert main(["offline", "--config", "configs/offline/demo.yaml", "--set", "model_heads=1"]) == 2
     assert "hauwm finetune offline: error: penalty 'loglik_std'" in capsys.readouterr().err
+    assert main(["--config", "configs/finetune/demo.yaml", "--set", "dataset=hauwm/x-v0"]) == 2  # was ignored
+    assert ("setting dataset belongs to `hauwm finetune offline --dataset ID`, not to `hauwm finetune`: drop it" in
+            capsys.readouterr().err)
+    assert main(["offline", "--config", "configs/offline/demo.yaml", "--dataset", "x", "--set", "demos=y"]) == 2
+    assert "setting demos belongs to `hauwm finetune imitate --demos ID`" in capsys.readouterr().err
     assert not runners
 
 
