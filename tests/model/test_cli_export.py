@@ -271,7 +271,7 @@ def test_a_resume_that_changes_how_batches_are_drawn_says_so(built_shards, tiny_
     shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
     assert fit(built_shards, tmp_path, "--ckpt_path", "last", "--trainer.max_steps", str(RUN_STEPS + 1),
                "--data.batch_size", "2") == 0
-    assert (f"last.ckpt was trained with data.batch_size 3 (asked: 2): the rest of its epoch is not what an unbroken "
+    assert ("last.ckpt was trained with data.batch_size 3 (asked: 2): the rest of its epoch is not what an unbroken "
             "run would have read") in capsys.readouterr().err
 
 
