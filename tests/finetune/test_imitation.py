@@ -213,15 +213,16 @@ def test_expert_pairs_of_windows_shorter_than_the_horizon_cover_what_the_window_
 
 
 def test_a_run_resumes_only_with_the_expert_latents_it_was_trained_with(export_dir, tiny_config, tmp_path, two_demos):
-    train_imitation(imitation_config(tiny_config, tmp_path, 16, expert_latents="posterior"), export_dir, progress=False)
+    run = tmp_path / "run"
+    train_imitation(imitation_config(tiny_config, run, 16, expert_latents="posterior"), export_dir, progress=False)
     with pytest.raises(FinetuneError, match="expert_latents='posterior', this run has expert_latents='imagined'"):
-        train_imitation(imitation_config(tiny_config, tmp_path, 32), export_dir, progress=False)
-    state = torch.load(tmp_path / CHECKPOINT, weights_only=True)
+        train_imitation(imitation_config(tiny_config, run, 32), export_dir, progress=False)
+    state = torch.load(run / CHECKPOINT, weights_only=True)
     del state["config"]["expert_latents"]  # as written before the setting existed: posterior expert pairs
-    torch.save(state, tmp_path / CHECKPOINT)
+    torch.save(state, run / CHECKPOINT)
     with pytest.raises(FinetuneError, match="expert_latents='posterior', this run has expert_latents='imagined'"):
-        train_imitation(imitation_config(tiny_config, tmp_path, 32), export_dir, progress=False)
-    train_imitation(imitation_config(tiny_config, tmp_path, 32, expert_latents="posterior"), export_dir, progress=False)
+        train_imitation(imitation_config(tiny_config, run, 32), export_dir, progress=False)
+    train_imitation(imitation_config(tiny_config, run, 32, expert_latents="posterior"), export_dir, progress=False)
 
 
 def test_bad_imitation_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_demos):
