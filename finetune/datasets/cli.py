@@ -123,6 +123,13 @@ def collect(args: argparse.Namespace) -> None:
     if args.best and args.policy != "agent":
         raise DatasetError("--best picks which checkpoint of a run --policy agent plays; drop it, or add --policy agent "
                            "--checkpoint RUNDIR")
+    if args.policy != "agent" and (unused := [flag for flag, given in (("--checkpoint", args.checkpoint),
+                                                                       ("--pretrained", args.pretrained),
+                                                                       ("--sample", args.sample)) if given]):
+        raise DatasetError(f"{unused[0]} is for --policy agent (a run's trained agent), not "
+                           f"{'--from-run' if args.from_run else f'--policy {args.policy}'}; drop it")
+    if args.from_run and args.seed != 0:  # the episodes are the replay's, played already
+        raise DatasetError("--from-run takes the run's replay as it is, which no seed changes: drop --seed")
     overrides = env_settings(args.set)
     if args.from_run:
         if args.policy or overrides:

@@ -352,7 +352,14 @@ def test_bad_collect_flags_are_refused_before_an_env_is_made(capsys):
     for flags, message in ((["--policy", "expert", "--action-noise", "nan"], "--action-noise is a standard deviation"),
                            (["--policy", "expert", "--action-noise", "-0.5"], "a number >= 0; got -0.5"),
                            (["--policy", "random", "--action-noise", "0.5"], "not to --policy random; drop it"),
-                           (["--policy", "random", "--seed", "-5"], "--seed must be a whole number in 0..2^32-1")):
+                           (["--policy", "random", "--seed", "-5"], "--seed must be a whole number in 0..2^32-1"),
+                           # these were dropped without a word
+                           (["--policy", "expert", "--sample"], "--sample is for --policy agent (a run's trained agent), "
+                                                                "not --policy expert; drop it"),
+                           (["--policy", "expert", "--checkpoint", "RUN"], "--checkpoint is for --policy agent"),
+                           (["--policy", "random", "--pretrained", "EXPORT"], "--pretrained is for --policy agent"),
+                           (["--from-run", "RUN", "--seed", "5"], "--from-run takes the run's replay as it is, which "
+                                                                  "no seed changes: drop --seed")):
         assert main([*base, *flags]) == 2, flags
         assert message in capsys.readouterr().err, flags
 

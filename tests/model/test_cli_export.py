@@ -195,6 +195,7 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--trainer.max_steps", "-5"], "a --trainer setting Lightning refuses: `max_steps` must be a non-negative"),
         (["--trainer.devices", "0"], "a --trainer setting Lightning refuses: `Trainer(devices='0')` value is not"),
         (["--ckpt_path", "/"], "--ckpt_path / is a directory: pass a checkpoint file"),
+        (["--trainer.limit_train_batches", "0"], "--trainer.limit_train_batches 0: the fit would train nothing"),
         (["--ckpt_path", "/nonexistent/last.ckpt"], "--ckpt_path /nonexistent/last.ckpt does not exist: pass a"),
     ],
 )
