@@ -90,8 +90,9 @@ def _decode_opencv(path: Path):
 def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int = 1) -> DecodedClip:
     """Decode every frame of `path`, resized; raise `ClipError` for any fault."""
     path = Path(path)
-    if not path.is_file():
-        raise ClipError("missing", f"no file at {path}")
+    if not path.is_file():  # nothing there, or no regular file (a directory, a device, a pipe: reading could hang)
+        what = "a directory" if path.is_dir() else "not a regular file" if path.exists() else None
+        raise ClipError("missing", f"{path} is {what}, not a video file" if what else f"no file at {path}")
     if os.path.getsize(path) == 0:
         raise ClipError("empty", "the file has 0 bytes")
     backend = "decord"

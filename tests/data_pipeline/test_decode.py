@@ -44,3 +44,14 @@ def test_a_damaged_clip_is_described_the_same_whether_the_decoder_stops_or_raise
     with pytest.raises(ClipError) as raised:
         decode_clip(path, 64)
     assert (raised.value.reason, raised.value.detail) == (stopped.value.reason, stopped.value.detail)
+
+
+def test_a_path_that_holds_no_video_file_says_what_is_there(tmp_path):
+    """A directory or a device at <id>.webm was reported as "no file at" it."""
+    (tmp_path / "dir.webm").mkdir()
+    (tmp_path / "device.webm").symlink_to("/dev/null")
+    for name, detail in (("nothing.webm", "no file at "), ("dir.webm", "dir.webm is a directory, not a video file"),
+                         ("device.webm", "device.webm is not a regular file, not a video file")):
+        with pytest.raises(ClipError) as error:
+            decode_clip(tmp_path / name, size=64)
+        assert error.value.reason == "missing" and detail in error.value.detail, name
