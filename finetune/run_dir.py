@@ -36,7 +36,7 @@ import yaml
 from finetune.agent import Agent, DivergedError
 from finetune.config import FinetuneConfig, FinetuneError, load_config, step_unit
 from model.config import ConfigError
-from model.export import WEIGHTS_FILE, torch_load_failure
+from model.export import WEIGHTS_FILE, non_finite, torch_load_failure
 
 CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"  # the agent at its best evaluation so far (keep_best)
@@ -115,7 +115,7 @@ def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dic
     fingerprint to `path` (a .tmp file, then renamed: an interrupted write keeps the last checkpoint). `rng`: the
     replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
     weights = agent.trainable_state_dict()
-    if diverged := [name for name, value in weights.items() if value.is_floating_point() and not value.isfinite().all()]:
+    if diverged := non_finite(weights):
         raise DivergedError(f"the agent's weights are not finite (NaN or inf; e.g. {diverged[0]}): the agent has "
                             f"diverged; {path.name} was not written, so checkpoint.pt and best.pt hold the agent as "
                             "last saved; lower model_lr, actor_lr or critic_lr, and start a new run")

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -140,6 +141,11 @@ PROVENANCE_KINDS = {"global_step": (whole, "a whole number"), "k_max": (lambda v
                     "lambda_final": (number, "a number"), "checkpoint": (lambda v: isinstance(v, str), "a path")}
 
 
+def non_finite(tensors: Mapping[str, torch.Tensor]) -> list[str]:
+    """The names of the floating-point tensors holding NaN or inf (a diverged model's), sorted."""
+    return sorted(name for name, tensor in tensors.items() if tensor.is_floating_point() and not tensor.isfinite().all())
+
+
 def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> FrozenWorldModel:
     """Rebuild the exported world model (frozen, eval mode) from DIR without unpickling anything."""
     config = read_config(export_dir)
@@ -165,7 +171,7 @@ def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> F
             f"{weights_path} does not match {Path(export_dir) / CONFIG_FILE}: " + "; ".join(sorted(problems)[:8])
             + (f" (and {len(problems) - 8} more)" if len(problems) > 8 else "")
         )
-    if diverged := sorted(name for name, t in tensors.items() if t.is_floating_point() and not t.isfinite().all()):
+    if diverged := non_finite(tensors):
         raise ExportError(f"{weights_path}: {diverged[0]} holds NaN or inf ({len(diverged)} tensors do): the checkpoint "
                           "it was exported from had diverged; export an earlier checkpoint of that fit")
     model.load_state_dict(tensors)
