@@ -118,10 +118,10 @@ def plan_shards(config: BuildConfig) -> list[ShardPlan]:
     return plans
 
 
-def check_settings(out: Path, settings: dict, part: int) -> None:
+def check_settings(out: Path, settings: dict, digest: str, part: int) -> None:
     """Record the settings in a fresh directory, or in one holding only shards built with them (parts built on other
     machines and copied there: their stats files carry the settings' digest); refuse a resume whose settings differ
-    and a directory holding other files of a build."""
+    and a directory holding other files of a build. `digest`: settings_digest(settings)."""
     path, tars = out / SETTINGS_FILE, sorted(out.glob("*.tar"))
     if path.is_file():
         try:
@@ -133,7 +133,7 @@ def check_settings(out: Path, settings: dict, part: int) -> None:
             details = "; ".join(f"{key}: was {was}, now {now}" for key, was, now in _differences(previous, settings))
             raise BuildError(f"{out} holds shards built with other settings ({details}). Re-run with the "
                              f"original settings to resume, or build into a new --out directory.")
-    elif foreign := [tar.name for tar in tars if not built_with(tar, settings)]:
+    elif foreign := [tar.name for tar in tars if not built_with(tar, digest)]:
         raise BuildError(f"{out} holds shards that were not built with these settings, and no {SETTINGS_FILE} (e.g. "
                          f"{foreign[0]}): build into a new --out directory")
     elif not tars and (present := [name for name in (MANIFEST_FILE, ERRORS_FILE) if (out / name).exists()]):
@@ -143,10 +143,10 @@ def check_settings(out: Path, settings: dict, part: int) -> None:
         _write_json_atomic(path, settings, writer=part)
 
 
-def built_with(tar: Path, settings: dict) -> bool:
-    """Whether the shard `tar` has a stats file that records a build with `settings` (their digest)."""
+def built_with(tar: Path, digest: str) -> bool:
+    """Whether the shard `tar` has a stats file that records a build with the settings of `digest`."""
     try:
-        return json.loads(tar.with_suffix(".stats.json").read_text()).get("settings_digest") == settings_digest(settings)
+        return json.loads(tar.with_suffix(".stats.json").read_text()).get("settings_digest") == digest
     except (OSError, ValueError, AttributeError):  # missing, not JSON, not an object
         return False
 
@@ -220,11 +220,16 @@ def clips_held(stats: dict) -> set[str]:
     return {clip for clip in stats["planned"] if clip not in failed}
 
 
+def partial_tar(out: Path, name: str) -> Path:
+    """Where shard `name` is written before it is complete (renamed to `name`.tar then)."""
+    return out / f".{name}.tar.partial"
+
+
 def write_shard(config: BuildConfig, plan: ShardPlan, results, digest: str, progress: tqdm) -> dict:
     """Write one shard from the results of its valid clips, in order, to its .partial file; returns its stats.
     `commit_shard` then puts it in place."""
     extension = ENCODINGS[config.encoding]
-    partial = config.out / f".{plan.name}.tar.partial"
+    partial = partial_tar(config.out, plan.name)
     errors, frame_counts, clips, frames, by_opencv = [], Counter(), 0, 0, 0
     with open(partial, "wb") as file, open_writer(file) as tar:
         for record in plan.records:
@@ -250,13 +255,13 @@ def write_shard(config: BuildConfig, plan: ShardPlan, results, digest: str, prog
 
 def commit_shard(config: BuildConfig, stats: dict) -> None:
     """Put the shard `write_shard` wrote in place of the .partial file; its stats file last: it marks it complete."""
-    os.replace(config.out / f".{stats['name']}.tar.partial", config.out / f"{stats['name']}.tar")
+    os.replace(partial_tar(config.out, stats["name"]), config.out / f"{stats['name']}.tar")
     _write_json_atomic(config.out / f"{stats['name']}.stats.json", stats)
 
 
 def discard_shard(config: BuildConfig, stats: dict) -> None:
     """Remove the .partial file of a shard that `write_shard` wrote and that is not to replace the one in place."""
-    (config.out / f".{stats['name']}.tar.partial").unlink()
+    partial_tar(config.out, stats["name"]).unlink()
 
 
 def assemble_manifest(config: BuildConfig, settings: dict, plans: list[ShardPlan], digest: str) -> dict | None:
@@ -327,8 +332,8 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
                          f"{ids[0]}.webm): point --videos at the directory of SSv2's <id>.webm files")
     config.out.mkdir(parents=True, exist_ok=True)
     settings = settings_of(config)
-    check_settings(config.out, settings, config.part)
     digest = settings_digest(settings)
+    check_settings(config.out, settings, digest, config.part)
     complete = {plan.name: stats for plan in mine if (stats := verified_stats(config.out, plan, digest)) is not None}
     kept = {name: stats for name, stats in complete.items() if not (config.retry_failed and retryable(stats["errors"]))}
     todo = [plan for plan in mine if plan.name not in kept]
