@@ -97,8 +97,9 @@ def frame_histogram(value: object) -> bool:
 
 # what a build writes in each entry: (key, test, what the test wants)
 SETTINGS_KINDS = (("size", lambda v: count(v) and v > 0, "a positive whole number"),
-                  ("resize", lambda v: isinstance(v, str), "a string"), ("encoding", lambda v: v in ENCODINGS,
-                  f"one of {', '.join(ENCODINGS)}"), ("quality", count, "a whole number"))
+                  ("resize", lambda v: isinstance(v, str), "a string"),
+                  ("encoding", lambda v: v in ENCODINGS, f"one of {', '.join(ENCODINGS)}"),
+                  ("quality", count, "a whole number"))
 SPLIT_KINDS = (*((key, count, "a whole number ≥ 0") for key in ("clips", "frames", "bytes", "errors")),
                ("shards", lambda v: isinstance(v, list), "a list of shards"))
 SHARD_KINDS = (("name", file_name, "the file name of a .tar in the directory"),

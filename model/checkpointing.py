@@ -8,12 +8,12 @@ during the copy (the OOM killer, SLURM after its grace period) leaves a truncate
 
 `LastStepCheckpoint` writes last.ckpt at the step a fit stops at, inside its epoch: at `trainer.max_steps`, when
 something asked the fit to stop (`trainer.max_time`'s Timer, an early stop), and on SIGTERM (what SLURM and
-Kubernetes send at preemption or a time limit; Lightning ends the fit after the current batch and writes
-nothing), at the end of the batch the ranks agreed to stop after (model/sigterm.py). Lightning 2.6's ModelCheckpoint, when no checkpoint was written yet, writes last.ckpt in
-`on_train_end`, after the fit loop has counted the cut-short epoch as completed: a resume would then start the
-next epoch, the rest of the stopped epoch's batches never trained, the data (SetEpoch) moved on. Written at the
-end of the last batch instead, the checkpoint holds the position inside the epoch, as every
-`every_n_train_steps` checkpoint does, and the resume continues the data stream exactly.
+Kubernetes send at preemption or a time limit; Lightning ends the fit after the current batch and writes nothing),
+at the end of the batch the ranks agreed to stop after (model/sigterm.py). Lightning 2.6's ModelCheckpoint, when no
+checkpoint was written yet, writes last.ckpt in `on_train_end`, after the fit loop has counted the cut-short epoch
+as completed: a resume would then start the next epoch, the rest of the stopped epoch's batches never trained, the
+data (SetEpoch) moved on. Written at the end of the last batch instead, the checkpoint holds the position inside
+the epoch, as every `every_n_train_steps` checkpoint does, and the resume continues the data stream exactly.
 """
 
 from __future__ import annotations

@@ -136,9 +136,12 @@ def number(value: object) -> bool:
 
 
 # what `world_model_from_checkpoint` records, as the analysis and fine-tuning read it: (test, what it wants)
-PROVENANCE_KINDS = {"global_step": (whole, "a whole number"), "k_max": (lambda v: whole(v) and v >= 1, "a whole number ≥ 1"),
-                    "hcu": (lambda v: isinstance(v, bool), "true or false"), "lambda_init": (number, "a number"),
-                    "lambda_final": (number, "a number"), "checkpoint": (lambda v: isinstance(v, str), "a path")}
+PROVENANCE_KINDS = {"global_step": (whole, "a whole number"),
+                    "k_max": (lambda v: whole(v) and v >= 1, "a whole number ≥ 1"),
+                    "hcu": (lambda v: isinstance(v, bool), "true or false"),
+                    "lambda_init": (number, "a number"),
+                    "lambda_final": (number, "a number"),
+                    "checkpoint": (lambda v: isinstance(v, str), "a path")}
 
 
 def non_finite(tensors: Mapping[str, torch.Tensor]) -> list[str]:

@@ -102,14 +102,15 @@ def checkpoint_to_resume(config, subcommand: str) -> str | None:
     last-v1.ckpt beside it, and `--ckpt_path last` would then resume the old run)."""
     ckpt_path, last = config.get("ckpt_path"), last_checkpoint(config["trainer"])
     if ckpt_path == "last":
-        others = sorted(last.parent.glob("*.ckpt"), key=lambda path: path.stat().st_mtime)  # none where no directory
-        if not last.is_file() and others:  # written by a config without a save-last ModelCheckpoint
-            raise ConfigError(f"--ckpt_path last: {last.parent} holds checkpoints but no last.ckpt (the config's "
-                              "trainer.callbacks have no ModelCheckpoint with save_last: true); go on from the newest "
-                              f"with --ckpt_path {others[-1]}, and add such a ModelCheckpoint to the config")
-        if subcommand == "validate" and not last.is_file():  # it would score a freshly initialised model
-            raise ConfigError(f"--ckpt_path last: no {last}: nothing to validate; pass the run's "
-                              "--trainer.default_root_dir, or a checkpoint file as --ckpt_path")
+        if not last.is_file():
+            # written by a config without a save-last ModelCheckpoint (none where there is no directory)
+            if others := sorted(last.parent.glob("*.ckpt"), key=lambda path: path.stat().st_mtime):
+                raise ConfigError(f"--ckpt_path last: {last.parent} holds checkpoints but no last.ckpt (the config's "
+                                  "trainer.callbacks have no ModelCheckpoint with save_last: true); go on from the "
+                                  f"newest with --ckpt_path {others[-1]}, and add such a ModelCheckpoint to the config")
+            if subcommand == "validate":  # it would score a freshly initialised model
+                raise ConfigError(f"--ckpt_path last: no {last}: nothing to validate; pass the run's "
+                                  "--trainer.default_root_dir, or a checkpoint file as --ckpt_path")
         ckpt_path = config["ckpt_path"] = str(last) if last.is_file() else None
         rank_zero_only(print)(f"hauwm pretrain {subcommand}: --ckpt_path last: " + (
             f"resuming from {last}" if ckpt_path else f"no {last} yet, starting at step 0"), file=sys.stderr)
@@ -121,7 +122,8 @@ def checkpoint_to_resume(config, subcommand: str) -> str | None:
 
 def refuse_other_model(ckpt_path: str, config, subcommand: str) -> dict:
     """Refuse a checkpoint whose weights or sizes are not the model asked for (rather than silently training
-    another size); say when it is already at max_steps. -> its hyper_parameters."""
+    another size), and one a fit cannot go on from (weights only); say when it is already at max_steps, and when a
+    fit resumes with other batch-drawing data settings (DATA_STREAM). -> its hyper_parameters."""
     checkpoint, saved_sizes = read_checkpoint(ckpt_path)
     checkpoint_world_model(checkpoint, saved_sizes, Path(ckpt_path))  # weights of another layout: refused
     if subcommand == "fit" and "optimizer_states" not in checkpoint:  # Lightning: a KeyError when it restores them

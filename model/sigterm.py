@@ -9,11 +9,11 @@ docs/pretraining.md). And at a step that validates, in one process as under DDP,
 validation, where no checkpoint can be written. From the sanity check on (or the start of training, without one),
 this callback stands in for Lightning's handler: the signal only sets a flag (and is passed on to the ranks that
 Lightning's launcher started from this process, and to a handler the process had before the fit, as Lightning
-does); after every step the ranks take the maximum of their flags in one all-reduce of one number (a single
-process reads its own). When one was signalled, all of them set Lightning's own `received_sigterm` after that
-step, where `LastStepCheckpoint` (the next callback) writes last.ckpt, so that Lightning raises its
-SIGTERMException on every rank at the end of it; a step that validates runs its validation to its end first. Lightning restores the handlers it
-found when the fit ends.
+does); after every step the ranks take the maximum of their flags in one all-reduce of one number (a single process
+reads its own). When one was signalled, all of them set Lightning's own `received_sigterm` after that step, where
+`LastStepCheckpoint` (the next callback) writes last.ckpt, so that Lightning raises its SIGTERMException on every
+rank at the end of it; a step that validates runs its validation to its end first. Lightning restores the handlers
+it found when the fit ends.
 
 Under DDP the agreement costs the step no wait for the GPU: the all-reduced flag of step s is read at the end of
 step s + 1 (so the ranks stop one step after the signal), by which time its copy to the host is done, where reading
