@@ -216,7 +216,7 @@ def inspect(args: argparse.Namespace) -> None:
     print(f"dataset         {args.dataset_id} ({dataset_path(args.dataset_id)})")
     print(f"task            {task or 'unknown'}")
     print(f"source          {settings.get('source', 'made elsewhere')}"
-          + "".join(f", {k} {v}" for k, v in settings.items() if k not in ("task", "source", "has_success")))
+          + "".join(f", {k} {v}" for k, v in settings.items() if k not in ("task", "source", "has_success", "complete")))
     print(f"observations    {dataset.observation_space}")
     print(f"actions         {dataset.action_space}")
     print(f"storage         {'JPEG' if dataset.storage.jpeg_encoding else 'raw'} frames, {size_mb:.1f} MB, "
@@ -225,9 +225,11 @@ def inspect(args: argparse.Namespace) -> None:
 
 
 def list_(args: argparse.Namespace) -> None:
-    from finetune.datasets.minari_io import METADATA_KEY, dataset_path, scan_datasets
+    from finetune.datasets.minari_io import METADATA_KEY, dataset_path, scan_datasets, unfinished, unfinished_message
 
     datasets, damaged = scan_datasets()
+    for dataset_id in [dataset_id for dataset_id, metadata in datasets.items() if unfinished(metadata)]:
+        print(unfinished_message(dataset_id, datasets.pop(dataset_id).get("total_episodes", 0)), file=sys.stderr)
     for dataset_id, why in damaged.items():
         moved = re.search(r"does not match id '([^']+)'", why)  # a directory copied or moved: its metadata keeps its ID
         if moved:

@@ -119,7 +119,21 @@ def open_dataset(dataset_id: str):
     if dataset.total_episodes == 0:
         raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} holds no episodes: collect into it "
                            "again (delete the directory first)")
+    if unfinished(dataset.storage.metadata):
+        raise DatasetError(unfinished_message(dataset_id, dataset.total_episodes))
     return dataset
+
+
+def unfinished(metadata: dict[str, Any]) -> bool:
+    """Whether a dataset's metadata says its writer was killed before it finished (write_dataset marks a dataset
+    unfinished until its last episode and its metadata are written, so a SIGKILL or a crash leaves it marked)."""
+    return metadata.get(METADATA_KEY, {}).get("complete") is False
+
+
+def unfinished_message(dataset_id: str, episodes: int) -> str:
+    return (f"dataset {dataset_id!r} at {dataset_path(dataset_id)} is unfinished: its writer (hauwm datasets collect "
+            f"or merge) was killed after {episodes} episodes, before it could close the dataset; delete that "
+            "directory and write the dataset again")
 
 
 def hauwm_metadata(dataset) -> dict[str, Any]:
@@ -332,6 +346,7 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
     if path.exists():
         raise DatasetError(f"dataset {dataset_id!r} already exists at {path}: use another ID (e.g. the next version "
                            "-vN) or delete that directory")
+    settings = {**metadata, "complete": False}  # until the end: a writer killed on the way leaves it marked unfinished
     dataset, with_success, stopped = None, None, False
     iterator = iter(episodes)
     try:
@@ -351,6 +366,8 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
                                 dataset_id, [], observation_space=observation_space, action_space=action_space,
                                 algorithm_name=str(metadata.get("source", "unknown")), description=description,
                                 jpeg_encoding=jpeg)
+                        settings["has_success"] = with_success
+                        dataset.storage.update_metadata({METADATA_KEY: settings})
                     if ("success" in episode) != with_success:
                         raise ValueError("episodes of one dataset must all have, or all lack, a success flag")
                     dataset.update_dataset_from_buffer([_episode_buffer(episode)])
@@ -360,7 +377,7 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
                 stopped = True  # between two episodes: those written make a whole dataset
         if dataset is None:
             raise DatasetError(f"dataset {dataset_id!r}: no episodes to write")
-        extra: dict[str, Any] = {METADATA_KEY: {**metadata, "has_success": with_success}}
+        extra: dict[str, Any] = {METADATA_KEY: {**settings, "complete": True}}
         if metadata.get("task") in REFERENCE_RETURNS:
             extra["ref_min_score"], extra["ref_max_score"] = map(float, REFERENCE_RETURNS[metadata["task"]])
         try:

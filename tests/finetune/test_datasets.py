@@ -450,3 +450,41 @@ def test_a_relative_datasets_path_is_read_from_the_directory_the_command_ran_in(
     assert hauwm(["datasets", "inspect", "test/relative-v0"]) == 0
     assert "test/relative-v0" in capsys.readouterr().out
     assert (tmp_path / "relative-root" / "test" / "relative-v0" / "data" / "main_data.hdf5").is_file()
+
+
+KILLED_WRITER = """
+import os, signal, sys
+import numpy as np
+from finetune.datasets import write_dataset
+
+def episodes():
+    steps = 4
+    episode = {"obs": np.zeros((steps + 1, 3, 64, 64), np.uint8), "action": np.zeros((steps + 1, 4), np.float32),
+               "reward": np.ones(steps + 1, np.float32), "success": np.zeros(steps + 1, np.float32),
+               "terminal": np.zeros(steps + 1, np.float32)}
+    yield episode
+    yield episode
+    os.kill(os.getpid(), signal.SIGKILL)  # the writer dies between two episodes, with no chance to clean up
+
+write_dataset(sys.argv[1], episodes(), {"task": "metaworld_drawer_close", "source": "random"})
+"""
+
+
+def test_a_dataset_whose_writer_was_killed_is_refused_as_unfinished(datasets_root, capsys):
+    """SIGKILL (the OOM killer, a node lost) in the middle of a collection left a dataset that read as a whole one
+    made elsewhere: its episodes so far, with no task recorded, so offline RL trained on it without a word."""
+    import subprocess
+    import sys
+
+    killed = subprocess.run([sys.executable, "-c", KILLED_WRITER, "test/killed-v0"], capture_output=True, text=True,
+                            env={**os.environ, "MINARI_DATASETS_PATH": str(datasets_root)})
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    assert (datasets_root / "test" / "killed-v0" / "data").is_dir()  # its episodes are on disk
+    unfinished = r"'test/killed-v0' at .* is unfinished: its writer .* was killed after 2 episodes.* delete that directory"
+    with pytest.raises(DatasetError, match=unfinished):
+        load_episodes("test/killed-v0")
+    assert main(["inspect", "test/killed-v0"]) == 2
+    assert re.search(unfinished, capsys.readouterr().err)
+    assert main(["list"]) == 0
+    listed = capsys.readouterr()
+    assert re.search(unfinished, listed.err) and "test/killed-v0" not in listed.out
