@@ -2,8 +2,9 @@
 
 decord (one thread: VP9 WebM fails with its default of 0 threads) reads the clip frame by frame until
 the stream ends, so the frame count is the number of frames actually decoded (WebM stores none).
-Where decord cannot open a file (or is not installed), OpenCV tries; `DecodedClip.decoder` says which
-decoded the clip, and the shard builder counts OpenCV's. `fault_tol=0` makes decord raise instead of silently
+Where decord cannot open a file (or is not installed), or gives frames that are not RGB (decord 0.6
+mis-shapes those of some narrow videos), OpenCV decodes the clip; `DecodedClip.decoder` says which
+decoded it, and the shard builder counts OpenCV's. `fault_tol=0` makes decord raise instead of silently
 repeating frames on corrupt input; a clip that decodes to fewer frames than its container's duration
 declares is corrupt too (truncated, or garbage in the stream). Faults raise `ClipError(reason, detail)`,
 which the shard builder records in `errors.jsonl`; the per-clip timeout lives in `workers.py`.
@@ -87,6 +88,22 @@ def _decode_opencv(path: Path):
         capture.release()
 
 
+def _open(path: Path):
+    """(decoder name, its (frame, fps) iterator, the first (frame, fps) or None): decord where it opens the file
+    and gives RGB frames, else OpenCV."""
+    try:
+        frames_iter = _decode_decord(path)
+        first = next(frames_iter, None)
+        if first is None or first[0].shape[2:] == (3,):
+            return "decord", frames_iter, first
+        # decord 0.6 mis-shapes the frames of some narrow videos (16, 24, 48 or 72 px wide: [H, W, 4] or [H, W, 6]
+        # of shifted rows), which would go into the shard as garbage colours
+    except Exception:  # decord raises bare RuntimeError/DECORDError on files it cannot open
+        pass
+    frames_iter = _decode_opencv(path)
+    return "opencv", frames_iter, next(frames_iter, None)
+
+
 def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int = 1) -> DecodedClip:
     """Decode every frame of `path`, resized; raise `ClipError` for any fault."""
     path = Path(path)
@@ -95,14 +112,7 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
         raise ClipError("missing", f"{path} is {what}, not a video file" if what else f"no file at {path}")
     if os.path.getsize(path) == 0:
         raise ClipError("empty", "the file has 0 bytes")
-    backend = "decord"
-    try:
-        frames_iter = _decode_decord(path)
-        first = next(frames_iter, None)
-    except Exception:  # decord raises bare RuntimeError/DECORDError on files it cannot open
-        backend = "opencv"
-        frames_iter = _decode_opencv(path)
-        first = next(frames_iter, None)
+    backend, frames_iter, first = _open(path)
     if first is None:
         raise ClipError("empty", f"{backend} decoded no frames")
     source_height, source_width = first[0].shape[:2]

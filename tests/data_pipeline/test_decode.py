@@ -55,3 +55,20 @@ def test_a_path_that_holds_no_video_file_says_what_is_there(tmp_path):
         with pytest.raises(ClipError) as error:
             decode_clip(tmp_path / name, size=64)
         assert error.value.reason == "missing" and detail in error.value.detail, name
+
+
+@pytest.mark.parametrize("height, width", [(24, 24), (24, 48), (16, 16), (40, 2)])
+def test_narrow_videos_that_decord_mis_shapes_decode_as_opencv_reads_them(tmp_path, height, width):
+    """decord 0.6 gives [H, W, 4] or [H, W, 6] frames of shifted rows for some widths (16, 24, 48, 72 px, and a
+    2 px one [H, W, 48]): 4-channel ones went into the shards as JPEGs of garbage colours, the rest made the
+    decoder process crash (recorded as `crashed`, retried by every --retry-failed)."""
+    path = tmp_path / "narrow.webm"
+    frames = np.random.default_rng(0).integers(0, 256, (6, height, width, 3), dtype=np.uint8)
+    write_webm(path, frames)
+    clip = decode_clip(path, 64)
+    capture = cv2.VideoCapture(str(path))
+    expected = []
+    while (read := capture.read())[0]:
+        expected.append(resize_frame(read[1][:, :, ::-1], 64, "squash"))
+    assert clip.frames.shape == (6, 64, 64, 3) and (clip.source_height, clip.source_width) == (height, width)
+    np.testing.assert_array_equal(clip.frames, np.stack(expected))
