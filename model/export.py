@@ -57,6 +57,13 @@ class FrozenWorldModel(WorldModel):
 def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, Any] | None = None) -> Path:
     """Write weights.safetensors and config.json for `model` into out_dir; returns out_dir."""
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ExportError(f"--out {out} is a file, not a directory: an export is a directory of two files; choose "
+                          "another --out")
+    for path in (out / WEIGHTS_FILE, out / CONFIG_FILE):
+        if path.exists() and not path.is_file():
+            raise ExportError(f"{path} is a {'directory' if path.is_dir() else 'special file'}: an export writes a "
+                              "file there; move it away or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     tensors = {name: t.detach().float().contiguous().cpu() for name, t in model.state_dict().items()}
     # one metadata entry: safetensors writes several in a different order each process, and fine-tuning runs

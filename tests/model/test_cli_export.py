@@ -552,3 +552,18 @@ def test_validation_by_epoch_with_an_interval_longer_than_an_epoch_is_an_error_n
     err = capsys.readouterr().err
     assert "error: a --trainer setting Lightning refuses: `val_check_interval` (100) must be less than or equal to " \
            "the number of the training batches (6)" in err and "Traceback" not in err
+
+
+def test_an_export_into_something_that_is_not_a_directory_of_files_is_refused(tiny_run, tmp_path, capsys):
+    """A directory at --out/weights.safetensors made the last rename fail with a traceback and left a .partial file
+    beside it; a file at --out gave FileExistsError from deep inside pathlib."""
+    checkpoint = str(tiny_run / "checkpoints" / "last.ckpt")
+    out = tmp_path / "export"
+    (out / "weights.safetensors").mkdir(parents=True)
+    assert main(["export", checkpoint, "--out", str(out), "--overwrite"]) == 2
+    assert f"{out / 'weights.safetensors'} is a directory: an export writes a file there" in capsys.readouterr().err
+    assert sorted(path.name for path in out.iterdir()) == ["weights.safetensors"]  # nothing written beside it
+    (tmp_path / "file").write_text("a user's")
+    assert main(["export", checkpoint, "--out", str(tmp_path / "file")]) == 2
+    assert f"--out {tmp_path / 'file'} is a file, not a directory" in capsys.readouterr().err
+    assert (tmp_path / "file").read_text() == "a user's"
