@@ -30,6 +30,13 @@ def saved_step(checkpoint: Path) -> str:
         return "?"
 
 
+def newest_checkpoint(trainer: lightning.Trainer) -> Path | None:
+    """The newest checkpoint file any of the fit's ModelCheckpoints has written (a config may have several)."""
+    written = [Path(path) for callback in trainer.checkpoint_callbacks
+               for path in (callback.last_model_path, callback.best_model_path) if path and Path(path).is_file()]
+    return max(written, key=lambda path: path.stat().st_mtime, default=None)
+
+
 class FitInterrupted(Exception):
     """A fit stopped with Ctrl-C or SIGTERM, after ResumeNotice said where it can resume from."""
 
@@ -51,10 +58,8 @@ class ResumeNotice(Callback):
         bar = trainer.progress_bar_callback
         if isinstance(bar, TQDMProgressBar) and bar._train_progress_bar is not None:  # None before training began
             bar._train_progress_bar.close()
-        checkpoint = trainer.checkpoint_callback
-        last = Path(checkpoint.last_model_path or checkpoint.best_model_path) if checkpoint else Path()
-        where = "no checkpoint was written yet"  # Path() is ".", never a file
-        if last.is_file():
+        where = "no checkpoint was written yet"
+        if (last := newest_checkpoint(trainer)) is not None:
             written = time.strftime("%H:%M:%S", time.localtime(last.stat().st_mtime))
             where = f"resume with --ckpt_path {last} (step {saved_step(last)}, written {written})"
         how = {130: "interrupted", 143: "terminated (SIGTERM)"}.get(self.exit_code, "stopped by the error below")

@@ -87,6 +87,19 @@ def test_ctrl_c_names_the_checkpoint_to_resume_from(tmp_path, capsys, bar):
     assert torch.load(last, weights_only=False)["global_step"] == 2
 
 
+def test_ctrl_c_names_the_newest_checkpoint_of_several_model_checkpoints(tmp_path, capsys):
+    """The notice read only the first ModelCheckpoint: with one that had written nothing yet before another that had,
+    it said "no checkpoint was written yet" beside a last.ckpt to resume from."""
+    rare = lightning.pytorch.callbacks.ModelCheckpoint(tmp_path / "rare", every_n_train_steps=100)
+    frequent = lightning.pytorch.callbacks.ModelCheckpoint(tmp_path / "frequent", save_last=True, every_n_train_steps=2)
+    trainer = lightning.Trainer(max_steps=10, accelerator="cpu", logger=False, enable_model_summary=False,
+                                enable_progress_bar=False, callbacks=[CtrlC(), rare, frequent, ResumeNotice()])
+    with pytest.raises(SystemExit):
+        trainer.fit(Regression())
+    last = tmp_path / "frequent" / "last.ckpt"
+    assert f"interrupted at step 3; resume with --ckpt_path {last} (step 2, written " in capsys.readouterr().err
+
+
 def test_the_cli_exits_130_and_says_so_before_any_checkpoint(built_shards, tmp_path, capsys):
     assert fit(built_shards, tmp_path, "--trainer.max_steps", "10", "--trainer.callbacks+=test_interrupt.CtrlC") == 130
     assert capsys.readouterr().err.rstrip().endswith("interrupted at step 3; no checkpoint was written yet")
