@@ -112,17 +112,22 @@ def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, f
 def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None,
              progress: bool = False) -> dict[str, float]:
     """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate.
-    `seed` reseeds the env first (the same episodes whenever this evaluation is run again, e.g. after resume)."""
+    `seed` reseeds the env first (the same episodes whenever this evaluation is run again, e.g. after resume).
+    The world model's posterior samples draw from torch's RNG forked and seeded with `seed` (0 without one): an
+    evaluation never moves the training's random stream (how often a run evaluates leaves what it learns as it
+    is), and one agent evaluated twice with one env seed gives the same figures."""
     from finetune.envs.references import normalised_return
 
     policy = AgentPolicy(agent, explore=False)
     returns, successes = [], []
-    for index in tqdm(range(episodes), unit=" episode", desc=f"evaluate {task}", disable=not progress,
-                      dynamic_ncols=True, leave=False):
-        episode = play_episode(env, policy, seed=seed if index == 0 else None)
-        returns.append(float(episode["reward"].sum(dtype=np.float64)))
-        if "success" in episode:  # the suites with a success test (Meta-World, RoboDesk) report one
-            successes.append(bool(episode["success"].any()))
+    with torch.random.fork_rng(devices=[agent.device] if agent.device.type == "cuda" else []):
+        torch.manual_seed(0 if seed is None else seed)
+        for index in tqdm(range(episodes), unit=" episode", desc=f"evaluate {task}", disable=not progress,
+                          dynamic_ncols=True, leave=False):
+            episode = play_episode(env, policy, seed=seed if index == 0 else None)
+            returns.append(float(episode["reward"].sum(dtype=np.float64)))
+            if "success" in episode:  # the suites with a success test (Meta-World, RoboDesk) report one
+                successes.append(bool(episode["success"].any()))
     result = {"return": float(np.mean(returns)), "return_std": float(np.std(returns))}
     try:
         result["normalised_return"] = float(normalised_return(task, result["return"]))

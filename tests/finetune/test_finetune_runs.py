@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import os
 
@@ -15,7 +16,7 @@ from finetune.agent import Agent
 from finetune.envs.base import PixelEnv
 from finetune.run_dir import (BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, run_config,
                                save_checkpoint)
-from finetune.train import build_agent, evaluate, resolve_device, start_run, train
+from finetune.train import build_agent, evaluate, resolve_device, start_run, task_env, train
 from model.export import export_frozen
 from model.world_model import WorldModel
 
@@ -301,3 +302,26 @@ def test_a_run_directory_whose_config_yaml_is_not_text_is_named(tmp_path):
     (tmp_path / "config.yaml").write_bytes(bytes(range(256)))  # a checkpoint copied over it, say
     with pytest.raises(FinetuneError, match=f"{tmp_path / 'config.yaml'}: config file .* is not valid YAML"):
         run_config(tmp_path)
+
+
+def test_what_a_run_learns_does_not_depend_on_how_it_is_evaluated(export_dir, tmp_path):
+    """Evaluations drew the world model's posterior samples from the training's torch RNG, so a seed's run learned
+    other weights with eval_episodes 2 than with 1; and one agent evaluated twice gave two different results."""
+    weights = []
+    for eval_episodes in (1, 2):
+        logdir = tmp_path / f"eval{eval_episodes}"
+        args = ["--config", "configs/finetune/demo.yaml", "--pretrained", str(export_dir), "--steps", "160"]
+        args += tiny_run_settings(logdir, time_limit=20, prefill=40, eval_every=80, checkpoint_every=160,
+                                  eval_episodes=eval_episodes)
+        assert main(args) == 0
+        assert len(rows(logdir / "eval.csv")) == 2
+        weights.append(torch.load(logdir / CHECKPOINT, weights_only=True)["agent"])
+    assert all(torch.equal(weights[0][key], weights[1][key]) for key in weights[0])
+
+    cfg = load_config("configs/finetune/demo.yaml", dict(hidden=24, units=32, time_limit=20, fast_render=True,
+                                                         device="cpu"))
+    agent = build_agent(cfg, 1, export_dir, torch.device("cpu"))
+    agent.load_state_dict(weights[0], strict=False)
+    with contextlib.closing(task_env(cfg, 7)) as env:
+        first, second = (evaluate(agent, env, episodes=1, task=cfg.task, seed=7) for _ in range(2))
+    assert first == second
