@@ -129,6 +129,13 @@ class FinetuneConfig:
         """`make_env`'s keyword arguments for this config: the dynamics and frames its agent acts in."""
         return {"action_repeat": self.action_repeat, "time_limit": self.time_limit, "fast_render": self.fast_render}
 
+    @property
+    def training_data(self) -> tuple[str, str | None]:
+        """(the flag, the dataset ID) of the dataset this paradigm learns from: offline RL's --dataset, imitation's
+        --demos; ("", None) for online RL."""
+        setting = {"offline": "dataset", "imitation": "demos"}.get(self.paradigm)
+        return (f"--{setting}", getattr(self, setting)) if setting else ("", None)
+
     def __post_init__(self) -> None:
         for name, allowed in CHOICES.items():
             if getattr(self, name) not in allowed:

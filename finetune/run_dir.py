@@ -102,7 +102,7 @@ def run_fingerprint(cfg: FinetuneConfig, pretrained: str | Path | None) -> Finge
     from finetune.datasets.minari_io import dataset_path
 
     fingerprint = {"export_sha256": export_fingerprint(pretrained if cfg.agent == "hauwm" else None)}
-    dataset_id = {"offline": cfg.dataset, "imitation": cfg.demos}.get(cfg.paradigm)
+    _, dataset_id = cfg.training_data
     if dataset_id:
         root = dataset_path(dataset_id)
         fingerprint["dataset_sha256"] = files_sha256([path for path in root.rglob("*") if path.is_file()], root)
@@ -176,7 +176,7 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: Fingerprint,
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
                             "pass the export it was trained on (or, to train anew, another --logdir)")
     if (dataset := fingerprint.get("dataset_sha256")) is not None and state.get("dataset_sha256", dataset) != dataset:
-        flag, dataset_id = ("--dataset", cfg.dataset) if cfg.paradigm == "offline" else ("--demos", cfg.demos)
+        flag, dataset_id = cfg.training_data
         raise FinetuneError(f"{path} was trained on another version of {flag} {dataset_id} (its files' sha256 "
                             "differs: collected again, merged or changed since): restore the dataset it was trained "
                             "on, or train in another --logdir")
