@@ -23,6 +23,7 @@ from lightning.pytorch.utilities import rank_zero_info
 
 from .loader import (LoaderError, SequenceDataset, check_shard_url, check_worker_priority, make_dataloader,
                      shard_set)
+from .sampling import gap_range_note
 from .shard_format import read_manifest
 
 MAX_TIMEOUT = 86_400.0  # --data.timeout: a day
@@ -99,6 +100,9 @@ class ShardDataModule(lightning.LightningDataModule):
         if stage in (None, "fit"):
             train_shards = shard_set(hp.shards, hp.train_split, hp.shard_url)
             self.train_clip_length = train_shards.median_frames(hp.seq_len)  # the export records it (PretrainModule)
+            if note := gap_range_note(train_shards.clip_lengths(), hp.seq_len, hp.k_max,
+                                      f"--data.k_max {hp.k_max} with --data.seq_len {hp.seq_len}"):
+                rank_zero_info(f"note: {note}")
             self.train_set = SequenceDataset(train_shards, num_workers=hp.num_workers, shuffle=True, continuous=True,
                                              shuffle_buffer=hp.shuffle_buffer, **common)
         no_validation = stage == "fit" and self.trainer is not None and self.trainer.limit_val_batches == 0

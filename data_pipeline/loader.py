@@ -98,6 +98,10 @@ class ShardSet:
         """Per shard, the number of clips with at least `seq_len` frames (the others are skipped)."""
         return [sum(n for frames, n in counts.items() if frames >= seq_len) for counts in self.frame_counts]
 
+    def clip_lengths(self) -> dict[int, int]:
+        """{frame count T: clips} over every shard of the split."""
+        return dict(sum((Counter(counts) for counts in self.frame_counts), Counter()))
+
     def median_frames(self, seq_len: int) -> float | None:
         """The median frame count T of the clips with at least `seq_len` frames (None if there are none): the
         typical T of the relative temporal embedding's k / T, which fine-tuning's k = 1 embedding takes."""

@@ -69,6 +69,41 @@ def sample_indices(num_frames: int, length: int, k_max: int, rng: np.random.Gene
     return start + np.concatenate([[0], np.cumsum(gaps)]).astype(np.int64)
 
 
+def gap_shares(frame_counts: dict[int, int], length: int, k_max: int) -> np.ndarray:
+    """float64 [k_max]: the share of each gap 1..k_max among those `sample_indices` draws, one sequence per clip, from
+    clips of these frame counts ({T: clips}; clips shorter than `length` draw none): U{1..K_max}'s 1/K_max each where
+    every clip holds a full span, less for the long gaps where clips are short. The marginal of one gap of a short
+    clip: P(k) = P(the other gaps fit in T − 1 − k) / (K_max · P(all gaps fit in T − 1))."""
+    num_gaps, total = length - 1, np.zeros(k_max)
+    for frames, clips in frame_counts.items():
+        budget = frames - 1
+        if frames < length or clips == 0:
+            continue
+        if num_gaps == 0 or num_gaps * k_max <= budget:
+            total += clips / k_max
+            continue
+        table = _fit_probabilities(num_gaps, k_max, budget)
+        rest_fits = np.array([table[num_gaps - 1, budget - k] if k <= budget else 0.0 for k in range(1, k_max + 1)])
+        total += clips * rest_fits / (k_max * table[num_gaps, budget])
+    return total / max(total.sum(), 1e-300)
+
+
+def gap_range_note(frame_counts: dict[int, int], length: int, k_max: int, where: str) -> str | None:
+    """A line saying how far the gaps drawn from these clips fall short of U{1..K_max} (None when the longest gap
+    keeps at least half its share): `where` names the settings, e.g. "--data.k_max 5 with --data.seq_len 16"."""
+    shares = gap_shares(frame_counts, length, k_max)
+    if k_max == 1 or shares[-1] >= 0.5 / k_max:
+        return None
+    span = 1 + (length - 1) * k_max
+    clips = sum(n for frames, n in frame_counts.items() if frames >= length)
+    shorter = sum(n for frames, n in frame_counts.items() if length <= frames < span)
+    mean = float(np.arange(1, k_max + 1) @ shares)
+    return (f"{where}: a sequence spans up to {span} frames, but {shorter} of the {clips} clips are shorter, and on "
+            f"those the gaps are drawn conditioned on fitting: k = {k_max} is {shares[-1]:.1%} of the gaps drawn "
+            f"({1 / k_max:.1%} under U{{1..{k_max}}}), the mean gap {mean:.2f} ({(k_max + 1) / 2:.2f}); a smaller k_max "
+            "or seq_len draws closer to U{1..K_max} (docs/data_pipeline.md, the too-short policy)")
+
+
 def gaps_of(indices: np.ndarray) -> np.ndarray:
     """`[..., L]` indices → `[..., L]` gaps with 0 before the first frame."""
     gaps = np.diff(indices, axis=-1, prepend=indices[..., :1])

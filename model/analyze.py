@@ -22,6 +22,7 @@ from matplotlib.figure import Figure  # no pyplot: no GUI backend, no global fig
 from tqdm import tqdm
 
 from data_pipeline.loader import SequenceDataset, shard_set
+from data_pipeline.sampling import gap_range_note
 from model.evaluation import horizon_metrics, horizon_sums
 from model.export import FrozenWorldModel, load_frozen
 from model.losses import disagreement
@@ -141,6 +142,8 @@ def analyze(
         print(f"note: the models were trained with K_max {', '.join(map(str, sorted(trained, key=str)))}; all are "
               f"evaluated at gaps 1..{k_max} (--k-max), beyond some models' training range", file=sys.stderr)
     held_out_shards = shard_set(shards, split)
+    if note := gap_range_note(held_out_shards.clip_lengths(), seq_len, k_max, f"--k-max {k_max} with --seq-len {seq_len}"):
+        print(f"note: {note}; the per-k figures of the long gaps rest on fewer frames", file=sys.stderr)
     dataset = SequenceDataset(held_out_shards, batch_size=batch_size, seq_len=seq_len, k_max=k_max,
                               num_workers=0, shuffle=False, seed=seed, batches_per_worker=batches)
     if (clips := sum(held_out_shards.eligible(seq_len))) < batches * batch_size:

@@ -6,7 +6,7 @@ from collections import Counter
 import numpy as np
 from scipy.stats import chisquare
 
-from data_pipeline.sampling import gaps_of, sample_gaps, sample_indices
+from data_pipeline.sampling import gap_range_note, gap_shares, gaps_of, sample_gaps, sample_indices
 
 
 def test_gaps_are_iid_uniform_on_clips_long_enough():
@@ -55,3 +55,19 @@ def test_starts_cover_the_whole_clip():
     starts = {int(sample_indices(40, 4, 2, rng)[0]) for _ in range(3000)}
     ends = {int(sample_indices(40, 4, 2, rng)[-1]) for _ in range(3000)}
     assert 0 in starts and 39 in ends
+
+
+def test_gap_shares_are_those_the_sampler_draws_and_the_note_comes_when_long_gaps_fall_short():
+    """The fit and `analyze` say when the clips are too short for K_max: the gaps then drawn are far from U{1..K_max}
+    (before, a K_max of 20 on 45-frame clips trained on gaps of mostly 1-3 without a word)."""
+    rng = np.random.default_rng(3)
+    clips = {20: 2, 45: 3, 120: 1}  # frame count -> clips; 120 frames hold every span of 12 gaps up to 5
+    drawn = np.concatenate([np.diff(sample_indices(frames, 13, 5, rng)) for frames, n in clips.items()
+                            for _ in range(n * 3000)])
+    frequencies = np.bincount(drawn, minlength=6)[1:] / len(drawn)
+    np.testing.assert_allclose(gap_shares(clips, 13, 5), frequencies, atol=0.005)
+    np.testing.assert_allclose(gap_shares({120: 4, 10: 9}, 13, 5), 0.2)  # long clips: U{1..5}; clips < L draw none
+    assert gap_range_note(clips, 13, 5, "k_max 5") is None  # k = 5 keeps more than half its 20%
+    note = gap_range_note(clips, 13, 20, "--data.k_max 20 with --data.seq_len 13")
+    assert note.startswith("--data.k_max 20 with --data.seq_len 13: a sequence spans up to 241 frames, but 6 of the 6 "
+                           "clips are shorter") and "(5.0% under U{1..20}), the mean gap" in note

@@ -429,7 +429,7 @@ def test_shards_of_another_frame_size_are_refused_by_fit_and_analyze(built_shard
     assert err.count(f"{shards} holds 32×32 frames; the world model reads 64×64") == 2 and "Traceback" not in err
 
 
-def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path):
+def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path, capsys):
     out = tmp_path / "analysis"
     args = ["analyze", "--model", str(tiny_export), "--model", str(tiny_export), "--shards", str(built_shards),
             "--out", str(out), "--batches", "2", "--batch-size", "3", "--seq-len", "8", "--heads", "3"]
@@ -441,6 +441,10 @@ def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path):
     assert len(figures["models"][0]["rollout"]["disagreement"]) == 4
     for png in ["disagreement_vs_k.png", *(f"rollouts_{i}-{tiny_export.name}.png" for i in range(2))]:
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    assert main([*args, "--k-max", "20", "--batches", "1", "--out", str(tmp_path / "k20")]) == 0
+    assert "note: --k-max 20 with --seq-len 8: a sequence spans up to 141 frames, but 3 of the 3 clips are shorter" \
+        in capsys.readouterr().err
 
 
 def test_logging_every_n_steps_logs_every_term_and_counter_at_those_steps(built_shards, tmp_path):
@@ -495,17 +499,21 @@ def test_analyze_refuses_settings_that_leave_nothing_to_measure(built_shards, ti
     assert not (tmp_path / "a").exists()
 
 
-def test_a_fit_prints_lightnings_messages_but_not_its_cloud_logger_advert(built_shards, tmp_path):
+def test_a_fit_prints_lightnings_messages_and_its_notes_but_not_the_cloud_logger_advert(built_shards, tmp_path):
     messages: list[str] = []
     handler = logging.Handler()
     handler.emit = lambda record: messages.append(record.getMessage())
     logging.getLogger("lightning.pytorch").addHandler(handler)
     try:
-        assert fit(built_shards, tmp_path / "run", "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0") == 0
+        assert fit(built_shards, tmp_path / "run", "--trainer.max_steps", "1", "--trainer.limit_val_batches", "0",
+                   "--data.k_max", "20") == 0
     finally:
         logging.getLogger("lightning.pytorch").removeHandler(handler)
     assert any("GPU available" in message for message in messages)  # Lightning's own start-up lines still print
     assert not any("litlogger" in message for message in messages)
+    # the sample clips (24-60 frames) hold few spans of 7 gaps up to 20: the long gaps are rare, and it says so
+    assert any(message.startswith("note: --data.k_max 20 with --data.seq_len 8: a sequence spans up to 141 frames, "
+                                  "but 18 of the 18 clips are shorter") for message in messages), messages
 
 
 def test_validate_scores_a_checkpoint_and_writes_no_checkpoint(built_shards, tiny_run, tmp_path, capsys, recwarn):
