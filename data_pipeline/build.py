@@ -375,7 +375,7 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
         f"({', '.join(f'{r}: {n}' for r, n in sorted(Counter(e['reason'] for e in failed).items())) or 'none'})")
     if by_opencv := sum(stats.get("decoded_by_opencv", 0) for stats in part_stats):  # stats of older builds: none
         missing = importlib.util.find_spec("decord") is None
-        cause = "decord is not installed" if missing else "decord could not open them or gave frames that are not RGB"
+        cause = "decord is not installed" if missing else "decord could not open them or would decode them wrong"
         log(f"{by_opencv} of the clips in shards were decoded by OpenCV ({cause}), the rest by decord")
     if (again := retryable(failed)) and not config.retry_failed:
         log(f"{len(again)} of the failures may not happen again ({', '.join(sorted(set(e['reason'] for e in again)))}): "

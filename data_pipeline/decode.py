@@ -2,9 +2,10 @@
 
 decord (one thread: VP9 WebM fails with its default of 0 threads) reads the clip frame by frame until
 the stream ends, so the frame count is the number of frames actually decoded (WebM stores none).
-Where decord cannot open a file (or is not installed), or gives frames that are not RGB (decord 0.6
-mis-shapes those of some narrow videos), OpenCV decodes the clip; `DecodedClip.decoder` says which
-decoded it, and the shard builder counts OpenCV's. `fault_tol=0` makes decord raise instead of silently
+Where decord cannot open a file (or is not installed), or would decode it wrong (decord 0.6 mis-shapes
+the frames of some narrow videos and misplaces the colour of odd heights: `decord_frame_trusted`), or
+the container declares more than a million frames, OpenCV decodes the clip; `DecodedClip.decoder` says
+which decoded it, and the shard builder counts OpenCV's. `fault_tol=0` makes decord raise instead of silently
 repeating frames on corrupt input; a clip that decodes to fewer frames than its container's duration
 declares is corrupt too (truncated, or garbage in the stream). Faults raise `ClipError(reason, detail)`,
 which the shard builder records in `errors.jsonl`; the per-clip timeout lives in `workers.py`.
@@ -12,6 +13,7 @@ which the shard builder records in `errors.jsonl`; the per-clip timeout lives in
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +23,8 @@ import numpy as np
 
 RESIZE_MODES = ("squash", "center-crop")
 DECLARED_SLACK = 2  # frames a container's declared duration may exceed the decoded count by
+MAX_DECLARED_FRAMES = 1_000_000  # more, and decord is not tried: a damaged duration of 1e15 ms made it abort
+#                                  the process (std::bad_alloc); a day at 12 fps is about 1e6 frames
 
 
 class ClipError(Exception):
@@ -52,13 +56,36 @@ def resize_frame(frame: np.ndarray, size: int, mode: str) -> np.ndarray:
     return cv2.resize(frame, (size, size), interpolation=cv2.INTER_AREA)
 
 
-def declared_frame_count(path: Path) -> int:
-    """The frame count the container's duration implies (0 when it declares none)."""
+@dataclass(frozen=True)
+class Container:
+    """What a file's headers declare, as OpenCV reads them (all 0 where it cannot open the file)."""
+
+    frame_count: int  # the frame count its duration implies (0: it declares none)
+    width: int
+    height: int
+
+
+def read_container(path: Path) -> Container:
     capture = cv2.VideoCapture(str(path))
     try:
-        return max(0, int(round(capture.get(cv2.CAP_PROP_FRAME_COUNT)))) if capture.isOpened() else 0
+        if not capture.isOpened():
+            return Container(0, 0, 0)
+        count = capture.get(cv2.CAP_PROP_FRAME_COUNT)
+        return Container(max(0, int(round(count))) if math.isfinite(count) else 0,
+                         int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
     finally:
         capture.release()
+
+
+def decord_frame_trusted(frame: np.ndarray, container: Container) -> bool:
+    """Whether decord decodes this file right, judged by its first frame: RGB [H, W, 3] of the container's size, H
+    even. decord 0.6 gives [H, W, 4] or [H, W, 6] frames of shifted rows for some narrow videos (16, 24, 48 or 72 px
+    wide) and misplaces the colour rows of videos of odd height (by up to 11 grey levels); OpenCV decodes both right."""
+    if frame.ndim != 3 or frame.shape[2] != 3:
+        return False
+    if container.height == 0:  # OpenCV cannot read the headers: decord is the only decoder there is
+        return True
+    return frame.shape[:2] == (container.height, container.width) and container.height % 2 == 0
 
 
 def _decode_decord(path: Path):
@@ -88,18 +115,18 @@ def _decode_opencv(path: Path):
         capture.release()
 
 
-def _open(path: Path):
+def _open(path: Path, container: Container):
     """(decoder name, its (frame, fps) iterator, the first (frame, fps) or None): decord where it opens the file
-    and gives RGB frames, else OpenCV."""
-    try:
-        frames_iter = _decode_decord(path)
-        first = next(frames_iter, None)
-        if first is None or first[0].shape[2:] == (3,):
-            return "decord", frames_iter, first
-        # decord 0.6 mis-shapes the frames of some narrow videos (16, 24, 48 or 72 px wide: [H, W, 4] or [H, W, 6]
-        # of shifted rows), which would go into the shard as garbage colours
-    except Exception:  # decord raises bare RuntimeError/DECORDError on files it cannot open
-        pass
+    and decodes it right (`decord_frame_trusted`), else OpenCV. A container declaring more than MAX_DECLARED_FRAMES
+    goes to OpenCV straight away: decord allocates for every frame declared."""
+    if container.frame_count <= MAX_DECLARED_FRAMES:
+        try:
+            frames_iter = _decode_decord(path)
+            first = next(frames_iter, None)
+            if first is None or decord_frame_trusted(first[0], container):
+                return "decord", frames_iter, first
+        except Exception:  # decord raises bare RuntimeError/DECORDError on files it cannot open
+            pass
     frames_iter = _decode_opencv(path)
     return "opencv", frames_iter, next(frames_iter, None)
 
@@ -112,9 +139,11 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
         raise ClipError("missing", f"{path} is {what}, not a video file" if what else f"no file at {path}")
     if os.path.getsize(path) == 0:
         raise ClipError("empty", "the file has 0 bytes")
-    backend, frames_iter, first = _open(path)
+    container = read_container(path)
+    backend, frames_iter, first = _open(path, container)
     if first is None:
-        raise ClipError("empty", f"{backend} decoded no frames")
+        raise ClipError("empty", f"{backend} decoded no frames (a file without a video stream, or in a codec neither "
+                                 "decord nor OpenCV decodes, e.g. AV1)")
     source_height, source_width = first[0].shape[:2]
     fps = first[1]
     resized = [resize_frame(first[0], size, resize)]
@@ -124,13 +153,14 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
             resized.append(resize_frame(frame, size, resize))
     except Exception as error:  # DECORDLimitReachedError (frames recovered from corrupt data), a failed decoder check
         decoder_error = f"{backend}: {str(error).strip().splitlines()[0][:200]}"
-    declared = declared_frame_count(path)
+    declared = container.frame_count
     if declared and len(resized) + DECLARED_SLACK < declared:
         # no count of the frames decoded, and the same words whether the decoder stopped at the damage or raised
         # there: decord does either, after a varying number of frames, from run to run on the same file, and a
         # resumed build's errors.jsonl must be byte-identical to an unbroken one's
         raise ClipError("corrupt", f"the stream breaks off: fewer frames decode than the {declared} its container "
-                                   "declares (truncated or damaged)")
+                                   "declares (truncated or damaged; or a video whose timestamps skip frames, or whose "
+                                   "audio outlasts its picture: docs/data_pipeline.md)")
     if decoder_error is not None:
         raise ClipError("corrupt", decoder_error)
     if len(resized) < min_frames:

@@ -116,8 +116,8 @@ def test_clips_that_decord_cannot_open_are_decoded_by_opencv_and_counted(sample_
     lines = []
     manifest, status = build(config, log=lines.append)
     assert status == 0 and manifest["splits"]["validation"]["clips"] == 3
-    assert ("1 of the clips in shards were decoded by OpenCV (decord could not open them or gave frames that are not "
-            "RGB), the rest by decord") in lines
+    assert ("1 of the clips in shards were decoded by OpenCV (decord could not open them or would decode them "
+            "wrong), the rest by decord") in lines
     assert sum(json.loads(path.read_text())["decoded_by_opencv"] for path in tmp_path.glob("*.stats.json")) == 1
 
 
