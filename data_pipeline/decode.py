@@ -13,6 +13,7 @@ which the shard builder records in `errors.jsonl`; the per-clip timeout lives in
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from dataclasses import dataclass
@@ -61,6 +62,7 @@ class Container:
     """What a file's headers declare, as OpenCV reads them (all 0 where it cannot open the file)."""
 
     frame_count: int  # the frame count its duration implies (0: it declares none)
+    fps: float  # the frame rate that count was computed with (duration = frame_count / fps)
     width: int
     height: int
 
@@ -69,9 +71,9 @@ def read_container(path: Path) -> Container:
     capture = cv2.VideoCapture(str(path))
     try:
         if not capture.isOpened():
-            return Container(0, 0, 0)
-        count = capture.get(cv2.CAP_PROP_FRAME_COUNT)
-        return Container(max(0, int(round(count))) if math.isfinite(count) else 0,
+            return Container(0, 0.0, 0, 0)
+        count, fps = capture.get(cv2.CAP_PROP_FRAME_COUNT), capture.get(cv2.CAP_PROP_FPS)
+        return Container(max(0, int(round(count))) if math.isfinite(count) else 0, fps if math.isfinite(fps) else 0.0,
                          int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
     finally:
         capture.release()
@@ -88,16 +90,20 @@ def decord_frame_trusted(frame: np.ndarray, container: Container) -> bool:
     return frame.shape[:2] == (container.height, container.width) and container.height % 2 == 0
 
 
+# a decoder yields (frame uint8 [H, W, 3] RGB, the stream's fps, the second at which the frame ends)
+
+
 def _decode_decord(path: Path):
     import decord
 
     reader = decord.VideoReader(str(path), num_threads=1, fault_tol=0)
     fps = float(reader.get_avg_fps())
-    while True:
+    for index in itertools.count():
         try:
-            yield reader.next().asnumpy(), fps
+            frame = reader.next().asnumpy()
         except StopIteration:
             return
+        yield frame, fps, float(reader.get_frame_timestamp(index)[1])
 
 
 def _decode_opencv(path: Path):
@@ -110,13 +116,14 @@ def _decode_opencv(path: Path):
             ok, frame = capture.read()
             if not ok:
                 return
-            yield frame[:, :, ::-1], fps  # BGR → RGB
+            ends = capture.get(cv2.CAP_PROP_POS_MSEC) / 1000 + (1 / fps if fps > 0 else 0.0)  # POS_MSEC: its start
+            yield frame[:, :, ::-1], fps, ends  # BGR → RGB
     finally:
         capture.release()
 
 
 def _open(path: Path, container: Container):
-    """(decoder name, its (frame, fps) iterator, the first (frame, fps) or None): decord where it opens the file
+    """(decoder name, its iterator, its first (frame, fps, end) or None): decord where it opens the file
     and decodes it right (`decord_frame_trusted`), else OpenCV. A container declaring more than MAX_DECLARED_FRAMES
     goes to OpenCV straight away: decord allocates for every frame declared."""
     if container.frame_count <= MAX_DECLARED_FRAMES:
@@ -129,6 +136,16 @@ def _open(path: Path, container: Container):
             pass
     frames_iter = _decode_opencv(path)
     return "opencv", frames_iter, next(frames_iter, None)
+
+
+def broken_off(decoded: int, decoded_until: float, container: Container) -> bool:
+    """Whether the decoded stream ends before the duration its container declares, by more than DECLARED_SLACK
+    frames: a truncated file, or garbage where the decoder stopped. Timed by the frames' timestamps (a stream whose
+    timestamps skip frames reaches its duration with fewer frames) and, where those are missing, by the count."""
+    if container.fps <= 0:
+        return decoded + DECLARED_SLACK < container.frame_count
+    until = max(decoded_until, decoded / container.fps)
+    return until + DECLARED_SLACK / container.fps < container.frame_count / container.fps
 
 
 def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int = 1) -> DecodedClip:
@@ -146,21 +163,22 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
                                  "decord nor OpenCV decodes, e.g. AV1)")
     source_height, source_width = first[0].shape[:2]
     fps = first[1]
-    resized = [resize_frame(first[0], size, resize)]
+    resized, decoded_until = [resize_frame(first[0], size, resize)], first[2]
     decoder_error = None
     try:
-        for frame, _ in frames_iter:
+        for frame, _, ends in frames_iter:
             resized.append(resize_frame(frame, size, resize))
+            decoded_until = max(decoded_until, ends)
     except Exception as error:  # DECORDLimitReachedError (frames recovered from corrupt data), a failed decoder check
         decoder_error = f"{backend}: {str(error).strip().splitlines()[0][:200]}"
     declared = container.frame_count
-    if declared and len(resized) + DECLARED_SLACK < declared:
+    if declared and broken_off(len(resized), decoded_until, container):
         # no count of the frames decoded, and the same words whether the decoder stopped at the damage or raised
         # there: decord does either, after a varying number of frames, from run to run on the same file, and a
         # resumed build's errors.jsonl must be byte-identical to an unbroken one's
         raise ClipError("corrupt", f"the stream breaks off: fewer frames decode than the {declared} its container "
-                                   "declares (truncated or damaged; or a video whose timestamps skip frames, or whose "
-                                   "audio outlasts its picture: docs/data_pipeline.md)")
+                                   "declares (truncated or damaged; or a video whose audio outlasts its picture, or which "
+                                   "starts late: docs/data_pipeline.md)")
     if decoder_error is not None:
         raise ClipError("corrupt", decoder_error)
     if len(resized) < min_frames:

@@ -103,3 +103,18 @@ def test_a_container_declaring_an_absurd_duration_is_corrupt_not_a_crashed_decod
                               "decode_clip(sys.argv[1], 64)", str(path)], capture_output=True, text=True,
                              cwd=Path(__file__).parents[2])
     assert decoded.returncode == 1 and "ClipError: corrupt: the stream breaks off" in decoded.stderr, decoded.stderr
+
+
+@pytest.mark.parametrize("decoder", ["decord", "opencv"])
+def test_a_video_whose_timestamps_skip_frames_is_whole_not_corrupt(monkeypatch, decoder):
+    """A camera that drops frames writes 30 frames over 3 s at 12 fps: its container declares 36. Counting frames
+    against that, the build recorded every such clip as `corrupt` (never retried) though each frame decodes."""
+    def cannot_open(path):  # as decord does with files it cannot read
+        raise RuntimeError("cannot open")
+        yield
+
+    if decoder == "opencv":
+        monkeypatch.setattr(decode, "_decode_decord", cannot_open)
+    clip = decode_clip(Path(__file__).parent / "fixtures" / "vp9_dropped_frames.webm", 64)
+    assert clip.decoder == decoder and clip.frames.shape == (30, 64, 64, 3)
+    np.testing.assert_allclose(clip.frames.mean((1, 2, 3)), 8 * np.arange(30), atol=3)  # every frame, in order
