@@ -30,13 +30,29 @@ MAX_TIMEOUT = 86_400.0  # --data.timeout: a day
 
 
 class SetEpoch(lightning.Callback):
-    """Sets the train dataset's epoch at the start of each epoch, before Lightning creates the epoch's iterator
-    (from epoch 1 on; epoch 0's iterator exists already and reads epoch 0, the dataset's initial value)."""
+    """Keeps the train dataset's epoch Lightning's: sets it at the start of each epoch, before Lightning creates the
+    epoch's iterator (from epoch 1 on; epoch 0's iterator exists already and reads epoch 0, the dataset's initial
+    value), and ends, on resume, an epoch that the checkpoint has gone further into than this run's epochs are long."""
 
     def on_train_epoch_start(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule) -> None:
         dataset = getattr(trainer.train_dataloader, "dataset", None)
         if isinstance(dataset, SequenceDataset):
             dataset.set_epoch(trainer.current_epoch)
+
+    def on_load_checkpoint(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule,
+                           checkpoint: dict) -> None:
+        """A resume with a larger batch or on more devices has shorter epochs: a checkpoint at batch 9 of a 12-batch
+        epoch is past the end of a 6-batch one. Lightning ran that epoch again from its first batch (the loader, past
+        it, read the next epoch's data) and then the next epoch's data once more; marked as ended, the fit goes on
+        with the next epoch, as the loader does (`ResumableDataLoader.load_state_dict`)."""
+        dataset = getattr(trainer.datamodule, "train_set", None)
+        progress = checkpoint.get("loops", {}).get("fit_loop", {}).get("epoch_loop.batch_progress")
+        if not isinstance(dataset, SequenceDataset) or not progress or progress["is_last_batch"]:
+            return
+        limit = trainer.limit_train_batches  # the epoch's length as Lightning will count it
+        batches = min(len(dataset), limit) if isinstance(limit, int) else int(len(dataset) * limit)
+        if progress["current"]["processed"] >= batches:
+            progress["is_last_batch"] = True
 
 
 class ShardDataModule(lightning.LightningDataModule):

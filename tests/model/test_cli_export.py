@@ -12,6 +12,7 @@ import shutil
 import warnings
 from pathlib import Path
 
+import lightning
 import pytest
 import torch
 import yaml
@@ -274,6 +275,31 @@ def test_a_resume_that_changes_how_batches_are_drawn_says_so(built_shards, tiny_
                "--data.batch_size", "2") == 0
     assert ("last.ckpt was trained with data.batch_size 3 (asked: 2): the rest of its epoch is not what an unbroken "
             "run would have read") in capsys.readouterr().err
+
+
+class RecordBatches(lightning.Callback):
+    """Records (Lightning's epoch, the train dataset's epoch, the batch's clip ids) of every training step (as the
+    Trainer's callback `test_cli_export.RecordBatches`)."""
+
+    steps: list[tuple[int, int, list[str]]] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self.steps.append((trainer.current_epoch, trainer.train_dataloader.dataset.epoch, list(batch["id"])))
+
+
+def test_a_resume_whose_epochs_got_shorter_than_its_checkpoints_position_reads_each_epoch_once(built_shards, tiny_run,
+                                                                                                 tmp_path):
+    """tiny_run stopped at batch 4 of a 6-batch epoch; at batch size 6 an epoch is 3 batches. Lightning ran that
+    epoch again from its first batch while the loader had moved on to the next epoch's data, which the next epoch
+    then read once more: every batch of it trained twice."""
+    shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
+    RecordBatches.steps.clear()
+    assert fit(built_shards, tmp_path, "--ckpt_path", "last", "--trainer.max_steps", str(RUN_STEPS + 6),
+               "--data.batch_size", "6", "--trainer.callbacks+=test_cli_export.RecordBatches") == 0
+    epochs = [(lightning_epoch, data_epoch) for lightning_epoch, data_epoch, _ in RecordBatches.steps]
+    assert epochs == [(7, 7)] * 3 + [(8, 8)] * 3  # the checkpoint's epoch 6 ended; each epoch reads its own data
+    batches = [tuple(ids) for *_, ids in RecordBatches.steps]
+    assert len(set(batches)) == 6
 
 
 def test_a_resume_that_changes_a_model_setting_is_refused(built_shards, tiny_run, tmp_path, capsys):
