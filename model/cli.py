@@ -16,6 +16,7 @@ resolved config.yaml to `<trainer.default_root_dir>/lightning_logs/version_N/`.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -84,6 +85,19 @@ def analyze_command(argv: list[str]) -> int:
     return 0
 
 
+def peer_lost(err: RuntimeError) -> str | None:
+    """What to say when a collective failed because another rank of a DDP job stopped (its own error, or a kill),
+    None for any other RuntimeError: gloo raises a bare RuntimeError from its transport, NCCL a DistBackendError."""
+    import torch.distributed as dist
+
+    if not (isinstance(err, dist.DistError) or "third_party/gloo" in str(err)):
+        return None
+    rank = dist.get_rank() if dist.is_initialized() else os.environ.get("RANK", "?")
+    reason = str(err).strip().splitlines()[0].split("] ", 1)[-1].split(". ", 1)[0][:160]
+    return (f"rank {rank} lost the other ranks of the job ({reason}): a rank stopped first, and its own error, or the "
+            "signal that killed it, says why (above, or in its node's log)")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
@@ -117,6 +131,11 @@ def main(argv: list[str] | None = None) -> int:
             return analyze_command(argv[1:])
     except (ConfigError, ExportError, LoaderError, ShardDirError) as err:
         print(f"hauwm pretrain {command}: error: {err}", file=sys.stderr)
+        return 2
+    except RuntimeError as err:
+        if not peer_lost(err):
+            raise
+        print(f"hauwm pretrain {command}: error: {peer_lost(err)}", file=sys.stderr)
         return 2
     except FitInterrupted as stop:  # ResumeNotice has said where the fit can resume from
         return stop.exit_code

@@ -61,3 +61,14 @@ class SigtermInSanityCheck(L.Callback):
     def on_validation_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0):
         if trainer.sanity_checking and batch_idx == 0:
             os.kill(os.getpid(), signal.SIGTERM)
+
+
+class LoaderFailsOnRankOne(L.Callback):
+    """Rank 1's loader fails before step 2 (as a corrupt shard only it reads would): rank 0 then waits in a
+    collective for a rank that has gone."""
+
+    def on_train_batch_start(self, trainer: L.Trainer, *_) -> None:
+        if trainer.global_rank == 1 and trainer.global_step == 2:
+            from data_pipeline.loader import LoaderError
+
+            raise LoaderError("shard train-000001.tar of rank 1 is damaged (a test's)")

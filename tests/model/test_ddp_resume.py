@@ -78,6 +78,16 @@ def test_ddp_with_the_compiled_step_takes_the_same_steps_and_ends_identical(buil
     assert rank0["lambda"] == rank1["lambda"] != 1.0
 
 
+def test_a_rank_that_fails_stops_the_job_with_one_line_from_each_rank(built_shards, tmp_path):
+    """Rank 1's loader error left rank 0 in a collective: it printed gloo's 100-line traceback of a "Connection
+    closed by peer" under "stopped by the error below", and the job exited with 1."""
+    done = ddp_fit(built_shards, tmp_path, ["    - class_path: rank_report.LoaderFailsOnRankOne\n"])
+    assert done.returncode == 2, done.stderr[-3000:]
+    assert "hauwm pretrain fit: error: shard train-000001.tar of rank 1 is damaged (a test's)" in done.stderr
+    assert "hauwm pretrain fit: error: rank 0 lost the other ranks of the job (" in done.stderr
+    assert "Traceback" not in done.stderr, done.stderr[-3000:]
+
+
 def test_sigterm_to_every_rank_at_different_points_stops_them_after_the_same_step(built_shards, tmp_path):
     """As SLURM sends it: each rank gets SIGTERM, rank 0 before step 3's batch and rank 1 inside its backward pass
     (rank_report.SigtermEveryRank). Lightning's own handler hung here; the ranks agree on step 3's flags after step 4
