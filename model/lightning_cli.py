@@ -170,7 +170,7 @@ def changed_on_resume(saved: dict, resumed, asked_model, asked_k_max: int) -> li
 
 def settle_trainer(trainer, subcommand: str) -> None:
     """Refuse, by flag, the Trainer settings this step cannot honour; leave out checkpointing where nothing is
-    saved; float16 autocast becomes bfloat16 on a CPU."""
+    saved; float16 autocast becomes bfloat16 on a CPU. (Every rank of a DDP job runs this; rank 0 alone says so.)"""
     if trainer.accelerator in ("gpu", "cuda") and not torch.cuda.is_available():
         raise ConfigError(f"trainer.accelerator is {trainer.accelerator} and no CUDA GPU is visible: for a (slow) "
                           "CPU run add --trainer.accelerator cpu --trainer.devices 1 --trainer.strategy auto, or "
@@ -179,19 +179,24 @@ def settle_trainer(trainer, subcommand: str) -> None:
     if no_cuda and str(trainer.devices) == "-1":  # Lightning's "every GPU"; its CPU accelerator raises a TypeError
         raise ConfigError("trainer.devices -1 means every GPU, and this run is on the CPU: pass --trainer.devices "
                           "1 (or N processes)")
+    if any(start in str(trainer.strategy) for start in ("spawn", "fork", "notebook")):
+        raise ConfigError(f"--trainer.strategy {trainer.strategy}: ranks started by Python's multiprocessing do not get "
+                          "the fit's SIGTERM handling (no last.ckpt, no exit 143) nor its stop notice; use "
+                          "--trainer.strategy ddp (one process a device, as torchrun and SLURM start them)")
     checkpointers = [callback for callback in trainer.callbacks or [] if names_a_model_checkpoint(callback)]
     if subcommand == "validate":  # writes no checkpoint; restoring one into it only warns of its dirpath
         trainer.enable_checkpointing = False
         trainer.callbacks = [callback for callback in trainer.callbacks or [] if callback not in checkpointers]
     elif trainer.enable_checkpointing is False and checkpointers:  # Lightning would refuse the pair
-        print("hauwm pretrain: --trainer.enable_checkpointing false: the config's ModelCheckpoint is left "
-              "out, so this run writes no checkpoint and cannot be resumed", file=sys.stderr)
+        rank_zero_only(print)("hauwm pretrain: --trainer.enable_checkpointing false: the config's ModelCheckpoint is "
+                              "left out, so this run writes no checkpoint and cannot be resumed", file=sys.stderr)
         trainer.callbacks = [callback for callback in trainer.callbacks if callback not in checkpointers]
     elif trainer.enable_checkpointing is not False and not any((getattr(callback, "init_args", None) or {}).get(
             "save_last") for callback in checkpointers):
-        print("hauwm pretrain: no ModelCheckpoint with save_last: true among trainer.callbacks (a config that sets "
-              "trainer.callbacks replaces the whole list), so this fit writes no last.ckpt and `--ckpt_path last` "
-              "cannot resume it: keep the ModelCheckpoint of configs/pretrain/*.yaml in the list", file=sys.stderr)
+        rank_zero_only(print)("hauwm pretrain: no ModelCheckpoint with save_last: true among trainer.callbacks (a "
+                              "config that sets trainer.callbacks replaces the whole list), so this fit writes no "
+                              "last.ckpt and `--ckpt_path last` cannot resume it: keep the ModelCheckpoint of "
+                              "configs/pretrain/*.yaml in the list", file=sys.stderr)
     trainer.precision = trainer.precision or "32-true"  # None: Lightning's default
     if str(trainer.precision) not in PRECISIONS:  # half-precision weights: the step's float32 state breaks
         raise ConfigError(f"--trainer.precision {trainer.precision}: a fit runs in {', '.join(PRECISIONS[::2])} "
@@ -213,7 +218,7 @@ def settle_trainer(trainer, subcommand: str) -> None:
     if trainer.gradient_clip_val is not None:
         raise ConfigError("--trainer.gradient_clip_val: the step clips its own gradients: set --model.grad_clip")
     if str(trainer.precision) in ("16-mixed", "16") and no_cuda:
-        print("hauwm pretrain: float16 autocast needs a GPU; using bf16-mixed on CPU", file=sys.stderr)
+        rank_zero_only(print)("hauwm pretrain: float16 autocast needs a GPU; using bf16-mixed on CPU", file=sys.stderr)
         trainer.precision = "bf16-mixed"
 
 

@@ -198,6 +198,8 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--ckpt_path", "/"], "--ckpt_path / is a directory: pass a checkpoint file"),
         (["--trainer.limit_train_batches", "0"], "--trainer.limit_train_batches 0: the fit would train nothing"),
         (["--ckpt_path", "/nonexistent/last.ckpt"], "--ckpt_path /nonexistent/last.ckpt does not exist: pass a"),
+        # it trained, but a SIGTERM killed it without last.ckpt, and Ctrl-C's notice said "at step 0"
+        (["--trainer.strategy", "ddp_spawn"], "--trainer.strategy ddp_spawn: ranks started by Python's multiprocessing"),
     ],
 )
 def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, capsys, flags, message):

@@ -189,3 +189,21 @@ def test_a_checkpoint_is_written_whole_beside_the_old_one_then_renamed(tmp_path,
     AtomicCheckpointIO().save_checkpoint({"global_step": 2}, path)
     assert seen == [(str(path.parent), 1)]  # written in the checkpoint's own directory; the old one whole till then
     assert torch.load(path, weights_only=False)["global_step"] == 2 and os.listdir(path.parent) == ["last.ckpt"]
+
+
+def test_a_checkpoint_write_stopped_by_ctrl_c_leaves_the_old_one_and_nothing_beside_it(tmp_path, monkeypatch):
+    """A Ctrl-C (or a full disk) in the middle of the write left `.last.ckpt.partial` in the checkpoint directory."""
+    from model.checkpointing import AtomicCheckpointIO
+
+    path = tmp_path / "checkpoints" / "last.ckpt"
+    AtomicCheckpointIO().save_checkpoint({"global_step": 1}, path)
+    save = torch.save
+
+    def interrupted(obj, file):
+        save(obj, file)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(torch, "save", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        AtomicCheckpointIO().save_checkpoint({"global_step": 2}, path)
+    assert os.listdir(path.parent) == ["last.ckpt"] and torch.load(path, weights_only=False)["global_step"] == 1
