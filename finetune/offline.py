@@ -26,10 +26,9 @@ from finetune.config import FinetuneConfig, FinetuneError
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.replay import Replay
-from finetune.run_dir import CHECKPOINT, exclusive, save_checkpoint
+from finetune.run_dir import CHECKPOINT, exclusive, next_multiple, save_checkpoint
 from finetune.termination import Terminated, terminable
-from finetune.train import (LogWindow, close_window, load_dataset, next_multiple, scheduled_evaluation, start_run,
-                            task_env)
+from finetune.train import LogWindow, close_window, load_dataset, scheduled_evaluation, start_run, task_env
 from finetune.world_model import Latent
 
 

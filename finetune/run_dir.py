@@ -260,6 +260,11 @@ def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: 
     return dict(state["counters"])
 
 
+def next_multiple(step: int, every: int) -> int:
+    """The first multiple of `every` after `step` (the next log, evaluation or checkpoint)."""
+    return (step // every + 1) * every
+
+
 def resume(cfg: FinetuneConfig, agent: Agent, fingerprint: Fingerprint, counters: dict[str, float],
            rng: np.random.Generator) -> dict[str, float]:
     """A run's start in cfg.logdir: its checkpoint if there is one (it restores the agent and `rng` and gives the
@@ -269,6 +274,9 @@ def resume(cfg: FinetuneConfig, agent: Agent, fingerprint: Fingerprint, counters
     if checkpoint.exists():
         counters = load_checkpoint(checkpoint, agent, cfg, fingerprint, rng, resuming=True)
         unit, key = step_unit(cfg.paradigm)
+        for name, every in (("next_eval", cfg.eval_every), ("next_checkpoint", cfg.checkpoint_every),
+                            ("next_log", cfg.log_every)):  # a cadence lowered on resume applies from here on
+            counters[name] = min(counters[name], next_multiple(int(counters[key]), every))
         print(f"resuming {checkpoint} at {unit} {int(counters[key])}", file=sys.stderr)
     else:
         refuse_other_run(cfg)

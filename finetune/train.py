@@ -30,7 +30,8 @@ from finetune.config import FinetuneConfig, FinetuneError, step_unit
 from finetune.logger import Logger
 from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
-from finetune.run_dir import CHECKPOINT, Fingerprint, exclusive, keep_best, resume, run_fingerprint, save_checkpoint
+from finetune.run_dir import (CHECKPOINT, Fingerprint, exclusive, keep_best, next_multiple, resume, run_fingerprint,
+                              save_checkpoint)
 from finetune.termination import StopRequest, Terminated, terminable
 from model.compiling import compile_mode
 
@@ -38,11 +39,6 @@ ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this
 HELD_OUT_SEED = 1_000_000_000  # `hauwm finetune evaluate` plays from the run's seed + this: an env seed the run's
 #                                fresh envs (seed + i · ENV_SEED_STRIDE) and evaluations (seed + 10,000 + step) never
 #                                reach (its reseeded episodes, `episode_seed`, only by a 1-in-2^32 chance)
-
-
-def next_multiple(step: int, every: int) -> int:
-    """The first multiple of `every` after `step` (the next log, evaluation or checkpoint)."""
-    return (step // every + 1) * every
 
 
 def episode_seed(run_seed: int, env: int, episodes: int) -> int:

@@ -325,3 +325,18 @@ def test_what_a_run_learns_does_not_depend_on_how_it_is_evaluated(export_dir, tm
     with contextlib.closing(task_env(cfg, 7)) as env:
         first, second = (evaluate(agent, env, episodes=1, task=cfg.task, seed=7) for _ in range(2))
     assert first == second
+
+
+def test_a_cadence_lowered_on_resume_applies_from_the_resumed_step(export_dir, tmp_path):
+    """next_eval and next_checkpoint came back from the checkpoint: a run resumed with eval_every and
+    checkpoint_every lowered from 10,000 to 80 evaluated and saved nothing until env step 10,000 (a kill on the way
+    lost everything since the resume)."""
+    logdir = tmp_path / "run"
+    args = ["--config", "configs/finetune/demo.yaml", "--pretrained", str(export_dir)]
+    settings = dict(time_limit=20, prefill=40, eval_episodes=1)
+    assert main(args + tiny_run_settings(logdir, eval_every=10_000, checkpoint_every=10_000, **settings)
+                + ["--steps", "120"]) == 0
+    assert main(args + tiny_run_settings(logdir, eval_every=80, checkpoint_every=80, **settings)
+                + ["--steps", "280"]) == 0
+    assert [int(row["env_step"]) for row in rows(logdir / "eval.csv")] == [120, 160, 240, 280]
+    assert torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]["next_checkpoint"] == 320
