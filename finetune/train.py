@@ -264,6 +264,9 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
         if cfg.threads > cpus:  # thousands of threads fail to allocate their stacks deep inside a library
             print(f"note: threads {cfg.threads} is more than this machine's {cpus} CPUs; using {cpus}", file=sys.stderr)
         torch.set_num_threads(min(cfg.threads, cpus))
+    if cfg.num_envs > (cpus := os.cpu_count() or 1):  # 100,000 were accepted, and ran the machine out of memory
+        print(f"note: num_envs {cfg.num_envs} is more than this machine's {cpus} CPUs: each env is a process of its own "
+              "(its simulator and renderer, about 100 MB), and envs beyond the CPUs step no faster", file=sys.stderr)
     torch.manual_seed(cfg.seed)
     agent = build_agent(cfg, action_dim, pretrained, device, agent_class)
     fingerprint = run_fingerprint(cfg, pretrained)

@@ -284,18 +284,20 @@ def test_evaluation_counts_an_episode_solved_at_any_step_and_normalises_its_retu
     assert result["normalised_return"] == pytest.approx((8.0 - 71.0) / (821.0 - 71.0))
 
 
-def test_more_threads_than_cpus_are_capped_with_a_note(tmp_path, capsys):
+def test_more_threads_or_envs_than_cpus_get_a_note(tmp_path, capsys):
     """threads=100000 failed to allocate the threads' stacks deep inside a library; the run uses the machine's CPUs."""
     cfg = load_config("configs/finetune/demo.yaml", dict(agent="scratch", hidden=24, units=32, threads=100_000,
-                                                         device="cpu", logdir=str(tmp_path)))
+                                                         num_envs=os.cpu_count() + 1, device="cpu",
+                                                         logdir=str(tmp_path)))
     threads = torch.get_num_threads()
     try:
         start_run(cfg, None, Agent, 1, {"env_step": 0}, np.random.default_rng(0))
         assert torch.get_num_threads() == os.cpu_count()
     finally:
         torch.set_num_threads(threads)
-    assert f"threads 100000 is more than this machine's {os.cpu_count()} CPUs; using {os.cpu_count()}" in \
-        capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"threads 100000 is more than this machine's {os.cpu_count()} CPUs; using {os.cpu_count()}" in err
+    assert f"num_envs {os.cpu_count() + 1} is more than this machine's {os.cpu_count()} CPUs: each env is a" in err
 
 
 def test_a_run_directory_whose_config_yaml_is_not_text_is_named(tmp_path):
