@@ -285,7 +285,8 @@ def test_evaluation_counts_an_episode_solved_at_any_step_and_normalises_its_retu
 
 
 def test_more_threads_or_envs_than_cpus_get_a_note(tmp_path, capsys):
-    """threads=100000 failed to allocate the threads' stacks deep inside a library; the run uses the machine's CPUs."""
+    """threads=100000 failed to allocate the threads' stacks deep inside a library; the run uses the machine's CPUs.
+    num_envs=100000 was taken without a word, and ran the machine out of memory starting its env processes."""
     cfg = load_config("configs/finetune/demo.yaml", dict(agent="scratch", hidden=24, units=32, threads=100_000,
                                                          num_envs=os.cpu_count() + 1, device="cpu",
                                                          logdir=str(tmp_path)))
