@@ -133,9 +133,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hauwm pretrain {command}: error: {err}", file=sys.stderr)
         return 2
     except RuntimeError as err:
-        if not peer_lost(err):
+        if (lost := peer_lost(err)) is None:
             raise
-        print(f"hauwm pretrain {command}: error: {peer_lost(err)}", file=sys.stderr)
+        print(f"hauwm pretrain {command}: error: {lost}", file=sys.stderr)
         return 2
     except FitInterrupted as stop:  # ResumeNotice has said where the fit can resume from
         return stop.exit_code
