@@ -55,8 +55,8 @@ class MixedReplay:
     def add(self, episode: dict[str, np.ndarray]) -> None:
         self.own.add(episode)
 
-    def load(self, action_dim: int | None = None) -> int:
-        return self.own.load(action_dim)
+    def load(self, stored: int, action_dim: int | None = None) -> int:
+        return self.own.load(stored, action_dim)
 
     def ready(self, length: int) -> bool:
         return self.own.ready(length) and self.demos.ready(length)

@@ -5,12 +5,15 @@ the action a_{t−1} that led to it and the reward r_t received with it (entry 0
 zero reward). Training batches are random windows of `length` consecutive entries from one episode
 (32 × 50 in the paper's Table 3), so a window never crosses an episode boundary. The capacity
 (10^6 steps) is enforced by dropping the oldest episodes from memory; files stay on disk, and a resumed
-run reloads the newest episodes that fit.
+run reloads the newest episodes that fit. The files are numbered in the order the run stored them; a run resumes
+from its checkpoint, so the files numbered past the checkpoint's count (written by a run stopped before its next
+checkpoint) are deleted at the reload: the resumed run collects those episodes again.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 import zipfile
 from collections import deque
 from pathlib import Path
@@ -25,6 +28,11 @@ KEYS = ("obs", "action", "reward")
 def episode_files(directory: Path) -> list[Path]:
     """The episode files a replay directory holds, oldest first (half-written `.tmp.npz` files left out)."""
     return sorted(p for p in Path(directory).glob("*.npz") if not p.name.endswith(".tmp.npz"))
+
+
+def episode_number(path: Path) -> int:
+    """The place of an episode file (`<number>-<steps>.npz`) in the order the run stored its episodes."""
+    return int(path.stem.split("-")[0])
 
 
 class ReplayError(RuntimeError):
@@ -82,13 +90,19 @@ class Replay:
         self.num_saved += 1
         self._keep(episode)
 
-    def load(self, action_dim: int | None = None) -> int:
-        """Reload the newest episodes on disk that fit the capacity, and at least the newest one, as `_keep` holds them
-        (for resume), all of the run's frame size and `action_dim`; returns how many."""
+    def load(self, stored: int, action_dim: int | None = None) -> int:
+        """Reload the newest of the first `stored` episodes on disk (those the run's checkpoint counts) that fit the
+        capacity, and at least the newest one, as `_keep` holds them (for resume), all of the run's frame size and
+        `action_dim`; returns how many. Episodes numbered `stored` or later are deleted, with a note."""
+        self.num_saved = stored  # a deleted file leaves a gap in the numbers; the next file is numbered by the count
         if self.directory is None or not self.directory.is_dir():
             return 0
-        paths = episode_files(self.directory)
-        self.num_saved = int(paths[-1].stem.split("-")[0]) + 1 if paths else 0  # a deleted file leaves a gap
+        paths = [path for path in episode_files(self.directory) if episode_number(path) < stored]
+        if after := [path for path in episode_files(self.directory) if episode_number(path) >= stored]:
+            print(f"note: {self.directory}: {len(after)} episodes stored after the checkpoint this run starts from "
+                  "deleted; the run collects them again", file=sys.stderr)
+            for path in after:
+                path.unlink()
         chosen, steps = [], 0
         for path in reversed(paths):
             length = int(path.stem.split("-")[1])

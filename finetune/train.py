@@ -308,7 +308,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     else:
         seeds = [episode_seed(cfg.seed, i, counters["episodes"]) for i in range(cfg.num_envs)]
     eval_env = task_env(cfg, cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]))
-    if not replay.load(action_dim) and counters["episodes"]:
+    if not replay.load(int(counters["episodes"]), action_dim) and counters["episodes"]:
         print(f"note: {logdir / 'replay'} holds none of the {int(counters['episodes'])} episodes this run stored (moved "
               "or deleted?): it trains on the episodes it collects from here", file=sys.stderr)
     logger = Logger(logdir, start=int(counters["env_step"]))

@@ -343,3 +343,25 @@ def test_a_cadence_lowered_on_resume_applies_from_the_resumed_step(export_dir, t
                 + ["--steps", "280"]) == 0
     assert [int(row["env_step"]) for row in rows(logdir / "eval.csv")] == [120, 160, 240, 280]
     assert torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]["next_checkpoint"] == 320
+
+
+def test_a_run_resumed_after_a_crash_learns_what_the_same_resume_without_the_crash_learns(export_dir, tmp_path, capsys):
+    """A run killed between two checkpoints had written the episodes it finished since the first to its replay; the
+    resume from that checkpoint reloaded them and collected them again, so it trained on each twice."""
+    logdir = tmp_path / "run"
+    args = ["--config", "configs/finetune/demo.yaml", "--pretrained", str(export_dir)]
+    args += tiny_run_settings(logdir, time_limit=20, prefill=40, eval_every=1000, checkpoint_every=80, eval_episodes=1)
+    assert main(args + ["--steps", "80"]) == 0
+    at_80 = (logdir / CHECKPOINT).read_bytes()
+    assert main(args + ["--steps", "160"]) == 0
+    unbroken = torch.load(logdir / CHECKPOINT, weights_only=True)["agent"]
+    assert len(list((logdir / "replay").glob("*.npz"))) == 4
+
+    (logdir / CHECKPOINT).write_bytes(at_80)  # as if the run had been killed after episode 3, before its checkpoint
+    capsys.readouterr()
+    assert main(args + ["--steps", "160"]) == 0
+    resumed = torch.load(logdir / CHECKPOINT, weights_only=True)
+    assert all(torch.equal(resumed["agent"][key], unbroken[key]) for key in unbroken)
+    assert resumed["counters"]["episodes"] == 4 and len(list((logdir / "replay").glob("*.npz"))) == 4
+    assert (f"note: {logdir / 'replay'}: 2 episodes stored after the checkpoint this run starts from deleted"
+            in capsys.readouterr().err)

@@ -58,7 +58,7 @@ def test_capacity_drops_the_oldest_episodes_and_disk_reload_keeps_the_newest(tmp
     assert len(list(tmp_path.glob("*.npz"))) == 5  # files stay on disk
 
     reloaded = Replay(tmp_path, capacity=50, rng=np.random.default_rng(0))
-    assert reloaded.load() == 2
+    assert reloaded.load(stored=5) == 2
     assert [int(ep["obs"][0, 0, 0, 0]) for ep in reloaded.episodes] == [4, 5]
     reloaded.add(episode(6, 20))
     assert (tmp_path / "000005-20.npz").exists()  # numbering continues after the reload
@@ -70,7 +70,7 @@ def test_episodes_that_fill_the_capacity_exactly_are_all_kept_and_reloaded(tmp_p
     for i in range(2):
         replay.add(episode(i + 1, 20))
     assert replay.num_steps == 40 and len(replay.episodes) == 2
-    assert Replay(tmp_path, capacity=40, rng=np.random.default_rng(0)).load() == 2
+    assert Replay(tmp_path, capacity=40, rng=np.random.default_rng(0)).load(stored=2) == 2
     replay.add(episode(3, 1))  # one step over: the oldest episode goes
     assert replay.num_steps == 21 and [int(ep["obs"][0, 0, 0, 0]) for ep in replay.episodes] == [2, 3]
 
@@ -83,7 +83,7 @@ def test_an_episode_longer_than_the_capacity_is_kept_alone_and_reloaded_alike(tm
     replay.add(episode(2, 20))
     assert [int(ep["obs"][0, 0, 0, 0]) for ep in replay.episodes] == [2] and replay.ready(8)
     reloaded = Replay(tmp_path, capacity=10, rng=np.random.default_rng(0))
-    assert reloaded.load() == 1 and reloaded.num_steps == replay.num_steps == 20
+    assert reloaded.load(stored=2) == 1 and reloaded.num_steps == replay.num_steps == 20
     assert [int(ep["obs"][0, 0, 0, 0]) for ep in reloaded.episodes] == [2] and reloaded.ready(8)
 
 
@@ -101,10 +101,10 @@ def test_a_damaged_episode_file_is_named_and_a_deleted_one_overwrites_nothing(tm
     first, second, third = sorted(tmp_path.glob("*.npz"))
     second.write_bytes(second.read_bytes()[:100])  # truncated, as by a full disk or a broken copy
     with pytest.raises(ReplayError, match=f"{second}: this replay episode cannot be read .* delete it"):
-        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load()
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(stored=3)
     second.unlink()  # what the message offers: the run goes on without that episode
     resumed = Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0))
-    assert resumed.load() == 2
+    assert resumed.load(stored=3) == 2
     resumed.add(episode(4, 5))
     assert [path.name for path in sorted(tmp_path.glob("*.npz"))] == [first.name, third.name, "000003-5.npz"]
 
@@ -118,12 +118,30 @@ def test_an_episode_of_another_task_in_the_replay_is_named_not_a_numpy_error(tmp
     np.savez_compressed(tmp_path / "000002-5.npz", **foreign)
     with pytest.raises(ReplayError, match=f"000002-5.npz: its actions have 4 dimensions, the run's 2: an episode of "
                                           f"another run or task\\? move it out of {tmp_path}"):
-        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(action_dim=2)
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(stored=3, action_dim=2)
     larger = episode(0, 5) | {"obs": np.zeros((6, 3, 84, 84), np.uint8)}  # the oldest file is the foreign one
     np.savez_compressed(tmp_path / "000000-5.npz", **larger)
     with pytest.raises(ReplayError, match=r"000000-5.npz: its frames are \[3, 84, 84\], the world model's \[3, 64, 64\]"):
-        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load()
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(stored=3)
     (tmp_path / "000000-5.npz").unlink()
     np.savez_compressed(tmp_path / "000002-5.npz", **(foreign | {"obs": foreign["obs"][:, 0]}))  # frames lose a dim
     with pytest.raises(ReplayError, match=r"000002-5.npz: it holds obs uint8 \[6, 64, 64\], action \[6, 4\]"):
-        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(action_dim=2)
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(stored=3, action_dim=2)
+
+
+def test_episodes_stored_after_the_checkpoint_are_deleted_and_their_numbers_reused(tmp_path, capsys):
+    """A run resumes from its checkpoint, which counted `stored` episodes: the ones written after it are collected
+    again by the resumed run, so the reload leaves them out and deletes them (their files would hold the same
+    numbers as the new ones: `000003-5.npz` and `000003-7.npz` side by side)."""
+    replay = Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0))
+    for i in range(5):
+        replay.add(episode(i + 1, 5))
+    resumed = Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0))
+    assert resumed.load(stored=3) == 3
+    assert f"note: {tmp_path}: 2 episodes stored after the checkpoint" in capsys.readouterr().err
+    assert [int(ep["obs"][0, 0, 0, 0]) for ep in resumed.episodes] == [1, 2, 3]
+    resumed.add(episode(4, 7))
+    assert [path.name for path in sorted(tmp_path.glob("*.npz"))] == ["000000-5.npz", "000001-5.npz", "000002-5.npz",
+                                                                     "000003-7.npz"]
+    assert Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(stored=4) == 4
+    assert "note" not in capsys.readouterr().err
