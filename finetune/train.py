@@ -312,15 +312,18 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
         print(f"note: {logdir / 'replay'} holds none of the {int(counters['episodes'])} episodes this run stored (moved "
               "or deleted?): it trains on the episodes it collects from here", file=sys.stderr)
     logger = Logger(logdir, start=int(counters["env_step"]))
-    try:
-        envs = make_vector_env(cfg.task, seeds, cfg.pin_envs, **cfg.env_settings)
-    except EnvWorkerError as error:
-        raise FinetuneError(f"task {cfg.task!r}: {error}") from None
-    with closing_envs(envs), terminable() as stop:
+    with terminable() as stop:
         try:
-            return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, logdir / CHECKPOINT,
-                        fingerprint, progress, hooks.reseed, stop)
-        except EnvWorkerError as error:  # a worker died mid-run
+            envs = make_vector_env(cfg.task, seeds, cfg.pin_envs, lambda: stop.requested, **cfg.env_settings)
+        except EnvWorkerError as error:
+            if stop.requested:  # the job's SIGTERM, which ended the workers as they started
+                raise Terminated(f"env step {int(counters['env_step'])}, as its env workers started") from None
+            raise FinetuneError(f"task {cfg.task!r}: {error}") from None
+        try:
+            with closing_envs(envs):
+                return loop(cfg, agent, envs, seeds, eval_env, replay, rng, logger, counters, logdir / CHECKPOINT,
+                            fingerprint, progress, hooks.reseed, stop)
+        except EnvWorkerError as error:  # a worker died or stopped answering mid-run
             if stop.requested or error.by_sigterm:  # the job's SIGTERM, which ended the workers first: as in loop()
                 save_checkpoint(logdir / CHECKPOINT, agent, cfg, counters, fingerprint, rng)
                 raise Terminated(f"env step {int(counters['env_step'])}") from None

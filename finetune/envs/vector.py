@@ -15,7 +15,10 @@
   cannot build its env says why in one line and the parent raises `EnvWorkerError` naming the task; one
   that dies later (a crash in the simulator, the out-of-memory killer) is named with its seed and cause.
   Workers ignore SIGINT: a terminal's Ctrl-C reaches the whole process group, and the learner, not each
-  worker, decides what an interrupt does (`closing_envs` ends them). Frames come back through shared memory.
+  worker, decides what an interrupt does (`closing_envs` ends them, with SIGKILL where SIGTERM does not do it:
+  a stopped worker). A worker that has not answered a step or reset for ANSWER_TIMEOUT_S (stopped by SIGSTOP,
+  stuck in its renderer), or for STOP_GRACE_S once the run was asked to stop (SIGTERM), is named with the state of
+  its process in an EnvWorkerError, instead of the run waiting for it forever. Frames come back through shared memory.
 - Workers are pinned to CPUs (`pin=True`, the default; Linux), the way Sample Factory pins its rollout
   workers: with N envs on C usable CPUs (`os.sched_getaffinity`), worker i gets CPU i mod C when C
   divides N, and its own block of C/N CPUs when N divides C; otherwise nothing is pinned. Every CPU gets
@@ -35,17 +38,22 @@ from __future__ import annotations
 import contextlib
 import functools
 import multiprocessing
+import multiprocessing.connection
 import os
 import signal
 import sys
+import time
 import warnings
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 
 from finetune.envs.registry import _suite, make_env
 
 START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+ANSWER_TIMEOUT_S = 300.0  # a step or reset takes milliseconds to a second: a worker silent this long is stuck
+STOP_GRACE_S = 5.0  # how long a run asked to stop (SIGTERM) waits for a silent worker: SLURM's SIGKILL comes in 30 s
 
 
 class EnvWorkerError(RuntimeError):
@@ -72,6 +80,25 @@ def death_cause(exitcode: int) -> str:
     return DEATH_CAUSES.get(-exitcode, f"killed by signal {-exitcode} ({signal.strsignal(-exitcode)})")
 
 
+# what the state letter of /proc/PID/stat says about a worker that does not answer
+PROCESS_STATES = {
+    "T": "its process is stopped (SIGSTOP, or a debugger): `kill -CONT {pid}` lets it go on",
+    "t": "its process is stopped by a debugger",
+    "D": "its process waits on the kernel (disk or GPU driver I/O)",
+    "R": "its process is running: stuck in the simulator or renderer?",
+    "S": "its process is waiting: stuck in the simulator or renderer?",
+}
+
+
+def process_state(pid: int) -> str:
+    """What Linux says about process `pid` (its state in /proc), for a worker that does not answer."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return "its process state is unknown"
+    return PROCESS_STATES.get(state, f"its process is in state {state!r}").format(pid=pid)
+
+
 def naming_dead_workers(method: Callable) -> Callable:
     """A WorkerEnvs method run inside its `_dead_workers_named` (an EnvWorkerError for a worker that died)."""
     @functools.wraps(method)
@@ -86,15 +113,46 @@ class WorkerEnvs(AsyncVectorEnv):
     the out-of-memory killer), are named in an EnvWorkerError: env index, seed, pid and cause, not the bare
     EOFError or BrokenPipeError its pipe gives."""
 
-    def __init__(self, name: str, seeds: list[int], env_fns: list, **kwargs):
-        self.name, self.seeds = name, seeds
+    answer_timeout = ANSWER_TIMEOUT_S
+
+    def __init__(self, name: str, seeds: list[int], env_fns: list, stopping: Callable[[], bool], **kwargs):
+        self.name, self.seeds, self.stopping = name, seeds, stopping
         super().__init__(env_fns, **kwargs)
 
-    # every call that talks to the workers (step and reset are an _async and a _wait)
+    # every call that talks to the workers (step and reset are an _async and a _wait); a _wait without a timeout
+    # (the run's) gives up on a silent worker, one with a timeout (gymnasium's close) waits as asked
     reset_async = naming_dead_workers(AsyncVectorEnv.reset_async)
-    reset_wait = naming_dead_workers(AsyncVectorEnv.reset_wait)
     step_async = naming_dead_workers(AsyncVectorEnv.step_async)
-    step_wait = naming_dead_workers(AsyncVectorEnv.step_wait)
+
+    @naming_dead_workers
+    def reset_wait(self, timeout: float | None = None, **kwargs):
+        if timeout is None:
+            self._await_answers("reset")
+        return super().reset_wait(timeout, **kwargs)
+
+    @naming_dead_workers
+    def step_wait(self, timeout: float | None = None):
+        if timeout is None:
+            self._await_answers("step")
+        return super().step_wait(timeout)
+
+    def _await_answers(self, call: str) -> None:
+        """Wait until every worker has answered `call` or closed its pipe (one that died: named by
+        _dead_workers_named); raise an EnvWorkerError naming the workers silent for answer_timeout seconds, or for
+        STOP_GRACE_S after `stopping()` turned true."""
+        waiting = {pipe: index for index, pipe in enumerate(self.parent_pipes)}
+        start, stop_seen = time.monotonic(), None
+        while waiting:
+            for pipe in multiprocessing.connection.wait(list(waiting), timeout=1.0):
+                del waiting[pipe]
+            now = time.monotonic()
+            if stop_seen is None and self.stopping():
+                stop_seen = now
+            if waiting and (now - start >= self.answer_timeout or (stop_seen and now - stop_seen >= STOP_GRACE_S)):
+                silent = [f"env worker {index} of {self.name} (seed {self.seeds[index]}, pid {self.processes[index].pid}) "
+                          f"has not answered its {call} in {now - start:.0f} s: {process_state(self.processes[index].pid)}"
+                          for index in sorted(waiting.values())]
+                raise EnvWorkerError("; ".join(silent))
 
     @contextlib.contextmanager
     def _dead_workers_named(self) -> Iterator[None]:
@@ -114,9 +172,11 @@ class WorkerEnvs(AsyncVectorEnv):
             raise failure from None
 
 
-def make_vector_env(name: str, seeds: list[int], pin: bool = True, **kwargs) -> VectorEnv:
+def make_vector_env(name: str, seeds: list[int], pin: bool = True, stopping: Callable[[], bool] = lambda: False,
+                    **kwargs) -> VectorEnv:
     """`len(seeds)` envs of task `name`, env i built by `make_env(name, seed=seeds[i], **kwargs)`; with more than
-    one, their worker processes are pinned to CPUs unless `pin` is false."""
+    one, their worker processes are pinned to CPUs unless `pin` is false, and a wait for a silent worker ends
+    STOP_GRACE_S after `stopping()` (the run's SIGTERM) turns true."""
     if len(seeds) == 1:
         return SyncVectorEnv([functools.partial(make_env, name, seed=seeds[0], **kwargs)],
                              autoreset_mode=AutoresetMode.SAME_STEP)
@@ -125,7 +185,7 @@ def make_vector_env(name: str, seeds: list[int], pin: bool = True, **kwargs) -> 
         context.set_forkserver_preload(forkserver_preload(name))
     env_fns = [functools.partial(make_env_in_worker, name, os.getpid(), seed=seed, **kwargs) for seed in seeds]
     try:
-        envs = WorkerEnvs(name, seeds, env_fns, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP)
+        envs = WorkerEnvs(name, seeds, env_fns, stopping, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP)
     except (EOFError, ConnectionError) as error:  # a worker ended before answering: make_env_in_worker said why
         raise EnvWorkerError(f"an env worker of {name} could not build its env (the worker's reason is on stderr "
                              f"above, unless a signal killed it); {type(error).__name__} from the worker's pipe") from None
@@ -166,22 +226,34 @@ def make_env_in_worker(name: str, parent_pid: int, seed: int, **kwargs):
 
 @contextlib.contextmanager
 def closing_envs(envs: VectorEnv) -> Iterator[VectorEnv]:
-    """Close `envs` when the block ends. When it ends by an exception (Ctrl-C while the workers step), the workers
-    are terminated without waiting for the step in flight, gymnasium's warning about that call is silenced, and a
-    worker that is gone already (killed) cannot turn the exception into a BrokenPipeError."""
+    """Close `envs` when the block ends. When it ends by an exception (Ctrl-C while the workers step, a worker that
+    died or stopped answering), the workers are ended without waiting for the step in flight (SIGTERM, then SIGKILL
+    for one that outlives it by a few seconds: a stopped process), gymnasium's warning about that call is silenced,
+    and a worker that is gone already (killed) cannot turn the exception into a BrokenPipeError."""
     try:
         yield envs
     except BaseException:
+        if isinstance(envs, WorkerEnvs):  # ended here first: gymnasium's close would wait on each for ever
+            end_workers(envs.processes)
         with warnings.catch_warnings(), contextlib.suppress(OSError, EOFError, EnvWorkerError):
             warnings.simplefilter("ignore")
             envs.close(terminate=True)
-        if not envs.closed:  # close stopped at a dead worker's pipe: end the rest here, and let no __del__ try again
-            for process in envs.processes:
-                process.terminate()
-                process.join()
-            envs.closed = True
+        envs.closed = True  # also where close stopped at a dead worker's pipe: no __del__ tries again
         raise
     envs.close()
+
+
+def end_workers(processes: list[multiprocessing.Process], grace: float = 5.0) -> None:
+    """SIGTERM each worker process, and SIGKILL those still there after `grace` seconds; wait for all of them."""
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    deadline = time.monotonic() + grace
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            process.kill()
+            process.join()
 
 
 def worker_cpus(num_envs: int, cpus: list[int]) -> list[set[int]] | None:

@@ -3,11 +3,13 @@ their episodes apart, and the vector env resets an env inside the step that ends
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import signal
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -279,3 +281,32 @@ def test_an_env_worker_that_dies_mid_run_is_named_with_its_seed_and_cause():
         envs.processes[1].join()
         envs.step(np.zeros((2, 1), np.float32))
     assert not any(process.is_alive() for process in envs.processes)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("stopping", [False, True])
+def test_an_env_worker_that_stops_answering_is_named_with_its_state_and_ended(stopping):
+    """A worker stopped by SIGSTOP (or stuck in its renderer) hung the run for ever: step_wait waited on its pipe, and
+    Ctrl-C or SIGTERM then hung in closing_envs, whose SIGTERM a stopped process does not act on. The wait now gives
+    up after answer_timeout seconds, or STOP_GRACE_S once the run is asked to stop, and closing_envs kills it."""
+    stop_requested = [False]
+    envs = make_vector_env("dmc_cartpole_swingup", [0, 7], pin=False, stopping=lambda: stop_requested[0],
+                           fast_render=True, time_limit=3)
+    envs.answer_timeout = 1e9 if stopping else 2.0
+    processes = envs.processes
+    try:
+        with pytest.raises(EnvWorkerError, match=r"env worker 1 of dmc_cartpole_swingup \(seed 7, pid \d+\) has not "
+                                                 r"answered its step in \d+ s: its process is stopped \(SIGSTOP, or a "
+                                                 r"debugger\): `kill -CONT \d+` lets it go on"), closing_envs(envs):
+            envs.reset()
+            os.kill(processes[1].pid, signal.SIGSTOP)
+            stop_requested[0] = stopping
+            started = time.monotonic()
+            envs.step(np.zeros((2, 1), np.float32))
+        assert time.monotonic() - started < 30
+        for process in processes:
+            assert not process.is_alive()
+    finally:
+        for process in processes:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(process.pid, signal.SIGKILL)

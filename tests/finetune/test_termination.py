@@ -71,13 +71,14 @@ def freeze(envs) -> None:
 
 
 @pytest.mark.parametrize(("who", "stopped_at"), [("learner", 64), ("workers", 60), ("everyone", 60),
-                                                 ("workers, having answered", 64)])
+                                                 ("workers, having answered", 64), ("learner, workers frozen", 60)])
 def test_an_online_run_stops_on_sigterm_with_a_checkpoint_and_goes_on_from_it(tmp_path, capsys, monkeypatch, who,
                                                                               stopped_at):
     """SIGTERM while the env workers step (num_envs 2): to the learner, which sees it after this env step; to the
     workers (SLURM signals every process of a job), which die in the step, before or without the learner's own, or
     just after they answered it, when the run stops at their next step. Both ends of that race are made certain: a
-    worker is frozen (SIGSTOP) before it can read the step it dies in, or killed once its answer is in the pipe."""
+    worker is frozen (SIGSTOP) before it can read the step it dies in, or killed once its answer is in the pipe.
+    Workers frozen for good (a stuck renderer) hung a learner's SIGTERM: it now waits STOP_GRACE_S for them."""
     logdir = tmp_path / "run"
     args = ["--config", "configs/finetune/demo.yaml", "--set", "agent=scratch", "--steps", "160"]
     args += tiny_run_settings(logdir, time_limit=20, prefill=40, eval_every=200, checkpoint_every=100,
@@ -89,17 +90,17 @@ def test_an_online_run_stops_on_sigterm_with_a_checkpoint_and_goes_on_from_it(tm
 
     def signalled(cfg, agent, replay, counters, window):
         envs = made[0]
-        if counters["env_step"] == 56 and who in ("workers", "everyone"):
+        if counters["env_step"] == 56 and who in ("workers", "everyone", "learner, workers frozen"):
             freeze(envs)  # so they die in the next step without having read it
         if counters["env_step"] == 60 and not sent:
             sent.append(who)
             if who == "workers, having answered":
                 assert all(pipe.poll(60) for pipe in envs.parent_pipes)
-            for process in envs.processes if who != "learner" else []:
+            for process in envs.processes if who.startswith(("workers", "everyone")) else []:
                 os.kill(process.pid, signal.SIGTERM)
                 os.kill(process.pid, signal.SIGCONT)  # a frozen worker: the pending SIGTERM ends it
                 process.join()
-            if who in ("learner", "everyone"):
+            if who.startswith(("learner", "everyone")):
                 os.kill(os.getpid(), signal.SIGTERM)
         return train_due(cfg, agent, replay, counters, window)
 
