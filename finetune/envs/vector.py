@@ -18,7 +18,8 @@
   worker, decides what an interrupt does (`closing_envs` ends them, with SIGKILL where SIGTERM does not do it:
   a stopped worker). A worker that has not answered a step or reset for ANSWER_TIMEOUT_S (stopped by SIGSTOP,
   stuck in its renderer), or for STOP_GRACE_S once the run was asked to stop (SIGTERM), is named with the state of
-  its process in an EnvWorkerError, instead of the run waiting for it forever. Frames come back through shared memory.
+  its process in an EnvWorkerError, instead of the run waiting for it forever. A worker whose learner is gone
+  (killed) ends at once and without a word (`quiet_worker`). Frames come back through shared memory.
 - Workers are pinned to CPUs (`pin=True`, the default; Linux), the way Sample Factory pins its rollout
   workers: with N envs on C usable CPUs (`os.sched_getaffinity`), worker i gets CPU i mod C when C
   divides N, and its own block of C/N CPUs when N divides C; otherwise nothing is pinned. Every CPU gets
@@ -48,6 +49,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
+from gymnasium.vector.async_vector_env import _async_worker
 
 from finetune.envs.registry import _suite, make_env
 
@@ -185,7 +187,8 @@ def make_vector_env(name: str, seeds: list[int], pin: bool = True, stopping: Cal
         context.set_forkserver_preload(forkserver_preload(name))
     env_fns = [functools.partial(make_env_in_worker, name, os.getpid(), seed=seed, **kwargs) for seed in seeds]
     try:
-        envs = WorkerEnvs(name, seeds, env_fns, stopping, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP)
+        envs = WorkerEnvs(name, seeds, env_fns, stopping, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP,
+                          worker=quiet_worker)
     except (EOFError, ConnectionError) as error:  # a worker ended before answering: make_env_in_worker said why
         raise EnvWorkerError(f"an env worker of {name} could not build its env (the worker's reason is on stderr "
                              f"above, unless a signal killed it); {type(error).__name__} from the worker's pipe") from None
@@ -222,6 +225,36 @@ def make_env_in_worker(name: str, parent_pid: int, seed: int, **kwargs):
         print(f"env worker of {name} (seed {seed}, pid {os.getpid()}): {type(error).__name__}: {reason}",
               file=sys.stderr, flush=True)
         os._exit(1)
+
+
+class LearnerPipe:
+    """A worker's end of its pipe to the learner, which ends the worker (exit status 0) when the learner is gone."""
+
+    def __init__(self, connection: multiprocessing.connection.Connection):
+        self.connection = connection
+
+    def recv(self):
+        try:
+            return self.connection.recv()
+        except (EOFError, ConnectionResetError):
+            os._exit(0)
+
+    def send(self, message) -> None:
+        try:
+            self.connection.send(message)
+        except (BrokenPipeError, ConnectionResetError):
+            os._exit(0)
+
+    def __getattr__(self, name: str):
+        return getattr(self.connection, name)
+
+
+def quiet_worker(index: int, env_fn: Callable, pipe: multiprocessing.connection.Connection, *args) -> None:
+    """gymnasium's worker loop, ended by a learner gone (kill -9) at once and without a word. gymnasium's own put
+    the error on its error queue, which nobody reads any more: once that queue's pipe was full its feeder thread
+    held the worker's exit for ever (38 of 100 workers, and the fork server, stayed), and each worker printed the
+    traceback of the BrokenPipeError its report met (2,111 lines of stderr from 100 workers)."""
+    _async_worker(index, env_fn, LearnerPipe(pipe), *args)
 
 
 @contextlib.contextmanager

@@ -310,3 +310,33 @@ def test_an_env_worker_that_stops_answering_is_named_with_its_state_and_ended(st
         for process in processes:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(process.pid, signal.SIGKILL)
+
+
+LEARNER_KILLED = """
+import os, signal
+import numpy as np
+from finetune.envs.vector import make_vector_env
+if __name__ == "__main__":
+    envs = make_vector_env("dmc_cartpole_swingup", [0, 1, 2, 3], pin=False, fast_render=True, time_limit=3)
+    envs.reset()
+    print(*[process.pid for process in envs.processes], flush=True)
+    envs.step_async(np.zeros((4, 1), np.float32))
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_env_workers_whose_learner_is_killed_end_at_once_and_without_a_word(tmp_path):
+    """A learner killed (kill -9, the out-of-memory killer) left each worker printing ~20 lines of BrokenPipeError
+    traceback; with ~100 workers some never ended (their error queue full, with no learner to read it)."""
+    script = tmp_path / "learner_killed.py"
+    script.write_text(LEARNER_KILLED)
+    repo = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([repo, os.environ.get("PYTHONPATH", "")])}
+    result = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == -signal.SIGKILL
+    workers = [int(pid) for pid in result.stdout.split()]
+    deadline = time.monotonic() + 30
+    while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [pid for pid in workers if Path(f"/proc/{pid}").exists()]
+    assert "Traceback" not in result.stderr, result.stderr[-2000:]

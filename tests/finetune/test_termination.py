@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -134,3 +137,37 @@ def test_an_offline_run_stopped_by_sigterm_and_resumed_ends_as_an_unbroken_one(e
     first = torch.load(tmp_path / "whole" / CHECKPOINT, weights_only=True)["agent"]
     second = torch.load(tmp_path / "stopped" / CHECKPOINT, weights_only=True)["agent"]
     assert all(torch.equal(value, second[key]) for key, value in first.items())
+
+
+SIGTERM_AS_WORKERS_START = """
+import os, signal, sys
+from finetune.envs import vector
+if __name__ == "__main__":
+    make_vector_env = vector.make_vector_env
+
+    def signalled(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return make_vector_env(*args, **kwargs)
+
+    vector.make_vector_env = signalled
+    from finetune.cli import main
+    sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_sigterm_while_the_env_workers_start_stops_the_run_with_its_line(tmp_path):
+    """SIGTERM came before the run handled it, while its env workers started: the process died with status −15 and
+    no word of what it had kept."""
+    script = tmp_path / "sigterm_as_workers_start.py"
+    script.write_text(SIGTERM_AS_WORKERS_START)
+    logdir = tmp_path / "run"
+    args = ["--config", "configs/finetune/demo.yaml", "--set", "agent=scratch", "--steps", "160"]
+    args += tiny_run_settings(logdir, time_limit=20, prefill=40, eval_every=200, checkpoint_every=100,
+                              eval_episodes=1, num_envs=2)
+    repo = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([repo, os.environ.get("PYTHONPATH", "")])}
+    result = subprocess.run([sys.executable, str(script), *args], env=env, capture_output=True, text=True,
+                            timeout=300, cwd=repo)
+    assert result.returncode == 143, result.stderr[-2000:]
+    assert f"terminated (SIGTERM) at env step 4; its last checkpoint, {logdir / CHECKPOINT} (written " in result.stderr
+    assert "Traceback" not in result.stderr
