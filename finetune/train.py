@@ -296,9 +296,15 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     counters = {"env_step": 0, "updates": 0, "episodes": 0, "next_eval": cfg.eval_every,
                 "next_checkpoint": cfg.checkpoint_every, "next_log": cfg.log_every}
     agent, fingerprint, counters = start_run(cfg, pretrained, hooks.agent_class, action_dim, counters, rng)
+    first_episodes_end = counters["env_step"] + cfg.num_envs * probe.time_limit * cfg.action_repeat  # envs in lockstep
     if cfg.steps <= cfg.prefill:
         print(f"note: steps {cfg.steps} end within the prefill of {cfg.prefill} env steps of random actions: this run "
               "collects episodes and evaluates the untrained agent, but makes no update", file=sys.stderr)
+    elif not counters["episodes"] and cfg.steps < first_episodes_end:
+        print(f"note: steps {cfg.steps} end before the envs finish their first episodes (at env step "
+              f"{first_episodes_end:.0f}: {cfg.num_envs} envs × time_limit {probe.time_limit} × action_repeat "
+              f"{cfg.action_repeat}): the replay gets no episode to train on, so this run makes no update and "
+              "evaluates the untrained agent; raise steps or lower num_envs", file=sys.stderr)
 
     # a resumed run reseeds from its progress, so it does not replay the same random streams; with hooks.reseed
     # each episode is seeded from its index instead, in the envs of a fresh run. Env i of num_envs gets its own

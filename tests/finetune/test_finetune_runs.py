@@ -227,6 +227,20 @@ def test_a_budget_within_the_prefill_says_it_makes_no_update(export_dir, tmp_pat
     assert rows(tmp_path / "run" / "eval.csv") and not (tmp_path / "run" / "train.csv").exists()
 
 
+def test_a_budget_that_ends_before_the_first_episodes_do_says_it_makes_no_update(export_dir, tmp_path, capsys):
+    """num_envs 2 × time_limit 10 × action_repeat 2: no episode ends before env step 40, and without one the replay
+    has nothing to train on; the run evaluated its untrained agent without a word."""
+    args = ["--config", "configs/finetune/demo.yaml", "--pretrained", str(export_dir)]
+    for steps, updates in ((36, False), (40, True)):
+        logdir = tmp_path / f"run{steps}"
+        settings = tiny_run_settings(logdir, time_limit=10, prefill=20, eval_episodes=1, num_envs=2)
+        assert main(args + ["--steps", str(steps)] + settings) == 0
+        note = (f"note: steps {steps} end before the envs finish their first episodes (at env step 40: 2 envs × "
+                "time_limit 10 × action_repeat 2): the replay gets no episode to train on")
+        assert (note in capsys.readouterr().err) != updates
+        assert (torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]["updates"] > 0) == updates
+
+
 @pytest.mark.parametrize("num_envs", [1, 2])
 def test_the_prefill_acts_at_random_and_the_agent_acts_after_it(export_dir, tiny_config, tmp_path, monkeypatch, num_envs):
     """The first `prefill` env steps (over all envs) take uniform random actions; every later one is the agent's."""
