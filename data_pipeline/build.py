@@ -23,6 +23,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from hauwm.atomic import written_whole
+
 from .shard_format import ENCODINGS, ERRORS_FILE, FORMAT_VERSION, MANIFEST_FILE, add_clip, open_writer
 from .ssv2 import AnnotationError, ClipRecord, annotation_path, load_labels, load_split
 from .workers import ClipResult, DecodePool, DecodeSettings
@@ -77,11 +79,10 @@ def _sha256(path: Path) -> str:
 
 def _write_json_atomic(path: Path, data, lines: list[dict] | None = None, writer: int = 0) -> None:
     """Write to a temporary name, then rename; `writer` (the part) keeps parts that run at once apart."""
-    partial = path.with_name(f".{path.name}.partial{writer}")
     text = json.dumps(data, indent=1, sort_keys=True) + "\n" if lines is None else \
         "".join(json.dumps(line, sort_keys=True) + "\n" for line in lines)
-    partial.write_text(text)
-    os.replace(partial, path)
+    with written_whole(path, f".{path.name}.partial{writer}") as partial:
+        partial.write_text(text)
 
 
 def settings_of(config: BuildConfig) -> dict:

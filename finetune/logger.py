@@ -11,11 +11,12 @@ TensorBoard tags are `<kind>/<name>` (e.g. `eval/return`, `train/model_loss`), w
 from __future__ import annotations
 
 import csv
-import os
 import sys
 from pathlib import Path
 
 from torch.utils.tensorboard import SummaryWriter
+
+from hauwm.atomic import written_whole
 
 
 class Logger:
@@ -72,9 +73,7 @@ def logged_after(step: str | None, start: int) -> bool:
 
 def rewrite(path: Path, header: list[str], rows: list[dict]) -> None:
     """`path` as a CSV of `header` and `rows`, replaced whole (written beside it, then renamed over it)."""
-    tmp = path.with_suffix(".csv.tmp")
-    with tmp.open("w", newline="") as f:
+    with written_whole(path) as partial, partial.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=header, restval="")
         writer.writeheader()
         writer.writerows(rows)
-    os.replace(tmp, path)

@@ -12,7 +12,6 @@ checkpoint) are deleted at the reload: the resumed run collects those episodes a
 
 from __future__ import annotations
 
-import os
 import sys
 import zipfile
 from collections import deque
@@ -20,13 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
+from hauwm.atomic import written_whole
 from model.networks import IMAGE_SHAPE
 
 KEYS = ("obs", "action", "reward")
 
 
 def episode_files(directory: Path) -> list[Path]:
-    """The episode files a replay directory holds, oldest first (half-written `.tmp.npz` files left out)."""
+    """The episode files a replay directory holds, oldest first (half-written ones, `.NAME.partial`, left out; and
+    `NAME.tmp.npz`, as runs before 2026-11-27 named them)."""
     return sorted(p for p in Path(directory).glob("*.npz") if not p.name.endswith(".tmp.npz"))
 
 
@@ -83,10 +84,9 @@ class Replay:
         length = len(episode["reward"]) - 1
         if self.directory is not None:
             self.directory.mkdir(parents=True, exist_ok=True)
-            path = self.directory / f"{self.num_saved:06d}-{length}.npz"
-            tmp = path.with_suffix(".tmp.npz")
-            np.savez_compressed(tmp, **episode)
-            os.replace(tmp, path)
+            with written_whole(self.directory / f"{self.num_saved:06d}-{length}.npz") as partial, \
+                    open(partial, "wb") as file:
+                np.savez_compressed(file, **episode)
         self.num_saved += 1
         self._keep(episode)
 

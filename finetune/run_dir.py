@@ -35,6 +35,7 @@ import yaml
 
 from finetune.agent import Agent, DivergedError
 from finetune.config import FinetuneConfig, FinetuneError, load_config, step_unit
+from hauwm.atomic import written_whole
 from model.config import ConfigError
 from model.export import WEIGHTS_FILE, non_finite, torch_load_failure
 
@@ -126,15 +127,13 @@ def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dic
         state["cuda_rng"] = torch.cuda.get_rng_state(agent.device)
     if rng is not None:
         state["replay_rng"] = rng.bit_generator.state
-    tmp = path.with_suffix(".tmp")
     try:
-        torch.save(state, tmp)
+        with written_whole(path) as partial:
+            torch.save(state, partial)
     except (OSError, RuntimeError) as err:  # torch's zip writer reports a full disk as a RuntimeError
-        tmp.unlink(missing_ok=True)
         raise FinetuneError(f"{path} could not be written ({str(err).splitlines()[0]}; a full disk or quota?); what "
                             "was written before is kept: free some space and run the same command again (it goes on "
                             "from the last checkpoint)") from None
-    os.replace(tmp, path)
 
 
 def keep_best(logdir: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float], fingerprint: Fingerprint,

@@ -14,8 +14,8 @@ tensor's name and shape against the architecture the config describes.
 
 from __future__ import annotations
 
+import contextlib
 import json
-import os
 import pickle
 from collections.abc import Mapping
 from pathlib import Path
@@ -25,6 +25,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 
+from hauwm.atomic import written_whole
 from model.config import ConfigError, WorldModelConfig, saved_settings
 from model.world_model import WorldModel
 
@@ -83,17 +84,9 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
     # both written beside their names first, then renamed one after the other: a full disk or a kill while they are
     # written (seconds at paper sizes) leaves an export replaced with --overwrite as it was, whole; only a kill between
     # the two renames could pair the new weights with the old config.json
-    files = {out / f".{name}.partial": (out / name, data) for name, data in
-             ((WEIGHTS_FILE, weights), (CONFIG_FILE, (json.dumps(config, indent=2) + "\n").encode()))}
-    try:
-        for partial, (_, data) in files.items():
-            partial.write_bytes(data)
-    except BaseException:
-        for partial in files:
-            partial.unlink(missing_ok=True)
-        raise
-    for partial, (path, _) in files.items():
-        os.replace(partial, path)
+    with contextlib.ExitStack() as renames:  # on leaving: config.json renamed, then the weights
+        for name, data in ((WEIGHTS_FILE, weights), (CONFIG_FILE, (json.dumps(config, indent=2) + "\n").encode())):
+            renames.enter_context(written_whole(out / name)).write_bytes(data)
     return out
 
 

@@ -209,7 +209,7 @@ def test_a_diverged_agent_never_replaces_the_last_good_checkpoint(export_dir, ti
     with pytest.raises(DivergedError, match=r"the agent's weights are not finite \(NaN or inf; e.g. behavior.critic.* "
                                             r"checkpoint.pt was not written"):
         save_checkpoint(checkpoint, agent, cfg, {"env_steps": 2}, fingerprint)
-    assert checkpoint.read_bytes() == good and not list(tmp_path.glob("*.tmp"))
+    assert checkpoint.read_bytes() == good and not list(tmp_path.glob(".*.partial"))
 
 
 def test_one_envs_non_finite_action_is_refused_too(export_dir, tiny_config):

@@ -181,7 +181,7 @@ def test_a_checkpoint_that_cannot_be_written_keeps_the_one_before(tiny_config, t
     with pytest.raises(FinetuneError, match=r"checkpoint.pt could not be written \(\[enforce fail .*; a full disk or "
                                             r"quota\?\); what was written before is kept"):
         save_checkpoint(tmp_path / CHECKPOINT, agent, cfg, {"env_step": 200}, {"export_sha256": ""})
-    assert (tmp_path / CHECKPOINT).read_bytes() == before and not list(tmp_path.glob("*.tmp"))
+    assert (tmp_path / CHECKPOINT).read_bytes() == before and not list(tmp_path.glob(".*.partial"))
 
 
 @pytest.mark.parametrize("device", ["gpu", "GPU", "cuda:x"])

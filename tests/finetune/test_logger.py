@@ -24,7 +24,7 @@ def test_rows_append_and_a_new_column_widens_the_header(tmp_path):
         {"env_step": "20", "loss": "1.0", "extra": "0.5"},
         {"env_step": "30", "loss": "", "extra": "0.25"},
     ]
-    assert not list(tmp_path.glob("*.tmp"))
+    assert not list(tmp_path.glob(".*.partial"))
 
 
 def test_a_header_only_file_is_widened_too(tmp_path):

@@ -1,0 +1,26 @@
+"""hauwm.atomic.written_whole: a file replaced whole, or left as it was."""
+
+from __future__ import annotations
+
+import pytest
+
+from hauwm.atomic import written_whole
+
+
+def test_the_new_contents_replace_the_file_only_when_the_block_ends(tmp_path):
+    path = tmp_path / "stats.json"
+    path.write_text("old")
+    with written_whole(path) as partial:
+        partial.write_text("new")
+        assert path.read_text() == "old" and partial.name == ".stats.json.partial"
+    assert path.read_text() == "new" and list(tmp_path.iterdir()) == [path]
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt, OSError])
+def test_a_block_that_fails_leaves_the_file_as_it_was_and_nothing_beside_it(tmp_path, error):
+    path = tmp_path / "checkpoint.pt"
+    path.write_text("old")
+    with pytest.raises(error), written_whole(path, "checkpoint.pt.tmp") as partial:
+        partial.write_text("half of the n")
+        raise error
+    assert path.read_text() == "old" and list(tmp_path.iterdir()) == [path]
