@@ -331,6 +331,8 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
                             fingerprint, progress, hooks.reseed, stop)
         except EnvWorkerError as error:  # a worker died or stopped answering mid-run
             if stop.requested or error.by_sigterm:  # the job's SIGTERM, which ended the workers first: as in loop()
+                if not error.by_sigterm:  # a worker that died or stopped answering for another reason: said too
+                    print(f"note: {error}", file=sys.stderr)
                 save_checkpoint(logdir / CHECKPOINT, agent, cfg, counters, fingerprint, rng)
                 raise Terminated(f"env step {int(counters['env_step'])}") from None
             raise FinetuneError(f"task {cfg.task!r}: {error}; the same command goes on from the run's last "

@@ -111,6 +111,8 @@ def test_an_online_run_stops_on_sigterm_with_a_checkpoint_and_goes_on_from_it(tm
     assert main(args) == 143
     err = capsys.readouterr().err
     assert f"terminated (SIGTERM) at env step {stopped_at}; its last checkpoint, {logdir / CHECKPOINT} (written " in err
+    frozen = "note: env worker 0 of dmc_cartpole_swingup (seed 0, pid "
+    assert (frozen in err and "has not answered its step in" in err) == (who == "learner, workers frozen")
     counters = torch.load(logdir / CHECKPOINT, weights_only=True)["counters"]
     assert counters["env_step"] == stopped_at and counters["next_checkpoint"] == 100  # not a checkpoint_every multiple
     monkeypatch.undo()
