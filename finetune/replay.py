@@ -31,13 +31,18 @@ def episode_files(directory: Path) -> list[Path]:
     return sorted(p for p in Path(directory).glob("*.npz") if not p.name.endswith(".tmp.npz"))
 
 
-def episode_number(path: Path) -> int:
-    """The place of an episode file (`<number>-<steps>.npz`) in the order the run stored its episodes."""
-    return int(path.stem.split("-")[0])
-
-
 class ReplayError(RuntimeError):
     pass
+
+
+def episode_name(path: Path) -> tuple[int, int]:
+    """(number, steps) of an episode file `NNNNNN-STEPS.npz`: its place in the order the run stored its episodes,
+    and its agent steps."""
+    number, _, steps = path.stem.partition("-")
+    if not (number.isdigit() and steps.isdigit()):
+        raise ReplayError(f"{path}: not the name of a replay episode (NNNNNN-STEPS.npz, as a run writes them): move "
+                          f"it out of {path.parent}")
+    return int(number), int(steps)
 
 
 def read_episode(path: Path, action_dim: int | None = None) -> dict[str, np.ndarray]:
@@ -97,15 +102,16 @@ class Replay:
         self.num_saved = stored  # a deleted file leaves a gap in the numbers; the next file is numbered by the count
         if self.directory is None or not self.directory.is_dir():
             return 0
-        paths = [path for path in episode_files(self.directory) if episode_number(path) < stored]
-        if after := [path for path in episode_files(self.directory) if episode_number(path) >= stored]:
+        files = [(path, *episode_name(path)) for path in episode_files(self.directory)]
+        if after := [path for path, number, _ in files if number >= stored]:
             print(f"note: {self.directory}: {len(after)} episodes stored after the checkpoint this run starts from "
                   "deleted; the run collects them again", file=sys.stderr)
             for path in after:
                 path.unlink()
         chosen, steps = [], 0
-        for path in reversed(paths):
-            length = int(path.stem.split("-")[1])
+        for path, number, length in reversed(files):
+            if number >= stored:
+                continue
             if chosen and steps + length > self.capacity:  # the newest stays, as in _keep
                 break
             chosen.append(path)

@@ -145,3 +145,12 @@ def test_episodes_stored_after_the_checkpoint_are_deleted_and_their_numbers_reus
                                                                      "000003-7.npz"]
     assert Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(stored=4) == 4
     assert "note" not in capsys.readouterr().err
+
+
+def test_a_file_not_named_as_a_replay_episode_is_named_not_a_value_error(tmp_path):
+    replay = Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0))
+    replay.add(episode(1, 5))
+    np.savez_compressed(tmp_path / "expert-demo.npz", **episode(2, 5))  # copied in by hand
+    with pytest.raises(ReplayError, match=f"{tmp_path / 'expert-demo.npz'}: not the name of a replay episode "
+                                          f"\\(NNNNNN-STEPS.npz, as a run writes them\\): move it out of {tmp_path}"):
+        Replay(tmp_path, capacity=10_000, rng=np.random.default_rng(0)).load(stored=1)
