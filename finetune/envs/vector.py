@@ -14,8 +14,8 @@
   (`EGL_BAD_ALLOC`, seen on an H200), so there each worker imports its suite itself. A worker that
   cannot build its env says why in one line and the parent raises `EnvWorkerError` naming the task; one
   that dies later (a crash in the simulator, the out-of-memory killer) is named with its seed and cause.
-  Workers ignore SIGINT: a terminal's Ctrl-C reaches the whole process group, and the learner, not each
-  worker, decides what an interrupt does (`closing_envs` ends them, with SIGKILL where SIGTERM does not do it:
+  Workers (and the fork server) ignore SIGINT: a terminal's Ctrl-C reaches the whole process group, and the
+  learner, not each worker, decides what an interrupt does (`closing_envs` ends them, with SIGKILL where SIGTERM does not do it:
   a stopped worker). A worker that has not answered a step or reset for ANSWER_TIMEOUT_S (stopped by SIGSTOP,
   stuck in its renderer), or for STOP_GRACE_S once the run was asked to stop (SIGTERM), is named with the state of
   its process in an EnvWorkerError, instead of the run waiting for it forever. A worker whose learner is gone
@@ -40,9 +40,11 @@ import contextlib
 import functools
 import multiprocessing
 import multiprocessing.connection
+import multiprocessing.forkserver
 import os
 import signal
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -185,6 +187,7 @@ def make_vector_env(name: str, seeds: list[int], pin: bool = True, stopping: Cal
     context = multiprocessing.get_context(START_METHOD)
     if START_METHOD == "forkserver":  # takes effect when the fork server starts (the first vector env of a process)
         context.set_forkserver_preload(forkserver_preload(name))
+        start_fork_server_ignoring_ctrl_c()
     env_fns = [functools.partial(make_env_in_worker, name, os.getpid(), seed=seed, **kwargs) for seed in seeds]
     try:
         envs = WorkerEnvs(name, seeds, env_fns, stopping, context=START_METHOD, autoreset_mode=AutoresetMode.SAME_STEP,
@@ -206,6 +209,21 @@ def forkserver_preload(name: str) -> list[str]:
     if os.environ.get("MUJOCO_GL") != "egl":
         modules.append(_suite(name).__name__)
     return modules
+
+
+def start_fork_server_ignoring_ctrl_c() -> None:
+    """Start the fork server (where it is not running yet) with SIGINT ignored, which it inherits through its exec:
+    a terminal's Ctrl-C reaches the whole process group, and one during the server's imports of the suite (seconds)
+    printed its KeyboardInterrupt traceback below the learner's line. (The server ignores SIGINT itself, but only
+    after those imports.) The learner ignores SIGINT only while it starts the server, a fork and an exec."""
+    if threading.current_thread() is not threading.main_thread():  # where no signal handler can be set
+        multiprocessing.forkserver.ensure_running()
+        return
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def make_env_in_worker(name: str, parent_pid: int, seed: int, **kwargs):

@@ -340,3 +340,28 @@ def test_env_workers_whose_learner_is_killed_end_at_once_and_without_a_word(tmp_
         time.sleep(0.1)
     assert not [pid for pid in workers if Path(f"/proc/{pid}").exists()]
     assert "Traceback" not in result.stderr, result.stderr[-2000:]
+
+
+# The fork server imports the preloaded modules first (the suite's: seconds); this one records how SIGINT is handled
+# while it does.
+SIGINT_AT_PRELOAD = """
+import os, sys
+from finetune.envs import vector
+if __name__ == "__main__":
+    vector.forkserver_preload = lambda name: ["__main__", "sigint_probe"]
+    envs = vector.make_vector_env("dmc_cartpole_swingup", [0, 1], pin=False, fast_render=True, time_limit=3)
+    envs.close()
+"""
+
+
+def test_the_fork_server_ignores_ctrl_c_from_its_first_import(tmp_path):
+    """A Ctrl-C while the fork server imported the suite printed its KeyboardInterrupt traceback."""
+    (tmp_path / "fork_server_ignores.py").write_text(SIGINT_AT_PRELOAD)
+    (tmp_path / "sigint_probe.py").write_text("import os, signal\n"
+                                              "with open(os.environ['PROBE_OUT'], 'w') as out:\n"
+                                              "    out.write(str(signal.getsignal(signal.SIGINT)))\n")  # '1': SIG_IGN
+    repo = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([repo, str(tmp_path), os.environ.get("PYTHONPATH", "")]),
+           "PROBE_OUT": str(tmp_path / "sigint.txt")}  # the fork server finds sigint_probe on PYTHONPATH
+    subprocess.run([sys.executable, str(tmp_path / "fork_server_ignores.py")], env=env, check=True, timeout=300)
+    assert (tmp_path / "sigint.txt").read_text() == str(signal.SIG_IGN)
