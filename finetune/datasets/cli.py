@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import re
 import sys
 import time
 from collections.abc import Iterable, Iterator
@@ -230,13 +229,8 @@ def list_(args: argparse.Namespace) -> None:
     datasets, damaged = scan_datasets()
     for dataset_id in [dataset_id for dataset_id, metadata in datasets.items() if unfinished(metadata)]:
         print(unfinished_message(dataset_id, datasets.pop(dataset_id).get("total_episodes", 0)), file=sys.stderr)
-    for dataset_id, why in damaged.items():
-        moved = re.search(r"does not match id '([^']+)'", why)  # a directory copied or moved: its metadata keeps its ID
-        if moved:
-            print(f"moved: {dataset_id} holds dataset {moved.group(1)} (its data/metadata.json names it so): move it "
-                  f"back, or write it again under the new ID", file=sys.stderr)
-        else:
-            print(f"damaged: {dataset_id} ({why}): write it again, or delete {dataset_path(dataset_id)}", file=sys.stderr)
+    for why in damaged.values():
+        print(why, file=sys.stderr)
     if not datasets:
         print(f"no datasets under {dataset_path()} (MINARI_DATASETS_PATH); make one with `hauwm datasets collect`")
         return
@@ -277,7 +271,7 @@ def stopped_by(terminated: list[int]) -> tuple[str, int]:
 
 def run_command(args: argparse.Namespace, terminated: list[int]) -> int:
     from finetune.agent import DivergedError
-    from finetune.datasets.minari_io import DatasetError, KeptOnInterrupt
+    from finetune.datasets.minari_io import DatasetError, DeletedOnInterrupt, KeptOnInterrupt
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
     from finetune.config import FinetuneError
@@ -304,9 +298,13 @@ def run_command(args: argparse.Namespace, terminated: list[int]) -> int:
         print(f"hauwm datasets: {stopped}; the {kept.dataset.total_episodes} episodes finished are kept as "
               f"{args.dataset_id}: collect more under another ID and `hauwm datasets merge` them", file=sys.stderr)
         return status
-    except KeyboardInterrupt:
+    except DeletedOnInterrupt as deleted:
         stopped, status = stopped_by(terminated)
-        print(f"hauwm datasets: {stopped} (a dataset being written was deleted)", file=sys.stderr)
+        print(f"hauwm datasets: {stopped}; the part of {deleted.dataset_id} written was deleted", file=sys.stderr)
+        return status
+    except KeyboardInterrupt:  # before a dataset was begun (a collect's first episode): nothing was written
+        stopped, status = stopped_by(terminated)
+        print(f"hauwm datasets: {stopped}; nothing was written", file=sys.stderr)
         return status
     return 0
 

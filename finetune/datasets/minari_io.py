@@ -20,8 +20,10 @@ with OpenCV's INTER_AREA. Every other mismatch is a `DatasetError` naming the da
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
-import re
+import os
 import shutil
 import warnings
 from collections.abc import Iterable, Iterator
@@ -45,6 +47,14 @@ ID_EXAMPLE = "hauwm/drawer_close-expert-v0"
 
 class DatasetError(ValueError):
     """A dataset that cannot be used (missing, empty, wrong images or actions); printed without a traceback."""
+
+
+class DeletedOnInterrupt(KeyboardInterrupt):
+    """Ctrl-C while write_dataset wrote a dataset it does not keep: the part written, `dataset_id`, was deleted."""
+
+    def __init__(self, dataset_id: str) -> None:
+        super().__init__()
+        self.dataset_id = dataset_id
 
 
 class KeptOnInterrupt(KeyboardInterrupt):
@@ -75,15 +85,35 @@ def check_dataset_id(dataset_id: str) -> None:
 
 
 def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
-    """Under $MINARI_DATASETS_PATH: (every dataset's ID -> its metadata, as Minari's `list_local_datasets` gives
-    them; every damaged dataset's ID -> why Minari skipped it)."""
-    import minari
+    """Under $MINARI_DATASETS_PATH, where Minari's `list_local_datasets` looks (every directory holding `data/`,
+    below directories not hidden): (every readable dataset's ID -> its metadata; every other's ID -> a line saying
+    why it cannot be read and what to do). Done here, as Minari 0.5 stops with a TypeError at a directory not named `name-vN`."""
+    from minari.dataset.minari_storage import MinariStorage
 
-    with warnings.catch_warnings(record=True) as caught:  # a damaged dataset is skipped, with a warning
-        warnings.simplefilter("always")
-        datasets = minari.list_local_datasets()
-    damaged = dict(match.groups() for warning in caught
-                   if (match := re.match(r"Misconfigured dataset named (\S+): (.*)", str(warning.message), re.S)))
+    datasets, damaged = {}, {}
+
+    def visit(directory: Path) -> None:
+        for child in sorted(directory.iterdir()):
+            if not child.is_dir() or child.name.startswith("."):
+                continue
+            if not (child / "data").exists():
+                visit(child)
+                continue
+            dataset_id = child.relative_to(dataset_path()).as_posix()
+            try:
+                check_dataset_id(dataset_id)
+                metadata = MinariStorage.read_raw_metadata(child / "data")
+                if metadata["dataset_id"] != dataset_id:  # a directory copied or moved: its metadata keeps its ID
+                    damaged[dataset_id] = (f"moved: {dataset_id} holds dataset {metadata['dataset_id']} (its "
+                                           "data/metadata.json names it so): move it back, or write it again under the "
+                                           "new ID")
+                    continue
+                datasets[dataset_id] = metadata
+            except (DatasetError, OSError, ValueError, KeyError) as error:  # JSONDecodeError is a ValueError
+                damaged[dataset_id] = f"damaged: {dataset_id} ({error}): write it again, or delete {child}"
+
+    if dataset_path().is_dir():
+        visit(dataset_path())
     return datasets, damaged
 
 
@@ -125,15 +155,67 @@ def open_dataset(dataset_id: str):
 
 
 def unfinished(metadata: dict[str, Any]) -> bool:
-    """Whether a dataset's metadata says its writer was killed before it finished (write_dataset marks a dataset
-    unfinished until its last episode and its metadata are written, so a SIGKILL or a crash leaves it marked)."""
+    """Whether a dataset's metadata says it is not finished: being written, or its writer was killed on the way
+    (write_dataset marks a dataset unfinished until its last episode and its metadata are written, so a SIGKILL or
+    a crash leaves it marked)."""
     return metadata.get(METADATA_KEY, {}).get("complete") is False
 
 
 def unfinished_message(dataset_id: str, episodes: int) -> str:
+    if (pid := writer_pid(dataset_id)) is not None:
+        return (f"dataset {dataset_id!r} at {dataset_path(dataset_id)} is being written (by pid {pid}; {episodes} "
+                "episodes so far): wait for its writer to finish")
     return (f"dataset {dataset_id!r} at {dataset_path(dataset_id)} is unfinished: its writer (hauwm datasets collect "
             f"or merge) was killed after {episodes} episodes, before it could close the dataset; delete that "
             "directory and write the dataset again")
+
+
+def writer_lock(dataset_id: str) -> Path:
+    """The lock file a writer of `dataset_id` holds (`writing`): hidden, beside the dataset's directory."""
+    path = dataset_path(dataset_id)
+    return path.with_name(f".{path.name}.writing")
+
+
+@contextlib.contextmanager
+def writing(dataset_id: str) -> Iterator[None]:
+    """Hold the writer's lock of `dataset_id` (flock on `writer_lock`, which holds this process's pid) while the block
+    runs: two writers of one new ID both crashed, and the one refused by Minari deleted what the other had written.
+    A second writer is refused (DatasetError), and `writer_pid` tells a dataset being written from one whose writer
+    was killed (the kernel releases the lock of a process that dies)."""
+    path = writer_lock(dataset_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        lock = open(path, "a+")
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.close()
+            raise DatasetError(f"dataset {dataset_id!r} is being written by another process (pid "
+                               f"{writer_pid(dataset_id) or '?'}): wait for it to finish, or use another ID") from None
+        if path.exists() and os.stat(path).st_ino == os.fstat(lock.fileno()).st_ino:
+            break
+        lock.close()  # the writer before deleted the file between our open and our lock: lock the new one
+    try:
+        lock.truncate(0)
+        lock.write(str(os.getpid()))
+        lock.flush()
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+        lock.close()
+
+
+def writer_pid(dataset_id: str) -> int | None:
+    """The pid of the process writing `dataset_id` now, None where none is."""
+    try:
+        with open(writer_lock(dataset_id)) as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return int(lock.read().strip() or 0) or None
+    except (OSError, ValueError):
+        pass
+    return None
 
 
 def hauwm_metadata(dataset) -> dict[str, Any]:
@@ -288,6 +370,11 @@ def _to_replay_layout(dataset_id: str, index: int, raw: dict[str, Any], view: Im
         success = np.concatenate([zero, success])
     if len(success) != steps + 1:
         raise DatasetError(f"{where}: infos/success holds {len(success)} entries for {steps} steps")
+    ends = np.asarray(raw["terminations"], bool) | np.asarray(raw["truncations"], bool)
+    if ends[:-1].any():
+        raise DatasetError(f"{where}: it ends at step {np.argmax(ends) + 1} of {steps} (terminations or truncations "
+                           "before its last step); a Minari episode ends at its first: split it there and write the "
+                           "dataset again")
     terminal = np.zeros(steps + 1, np.float32)
     terminal[-1] = float(np.asarray(raw["terminations"])[-1])
     return {"obs": obs, "action": np.concatenate([np.zeros((1, actions.shape[1]), np.float32), actions]),
@@ -337,17 +424,28 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
     source, env settings) is stored under the "hauwm" key of the dataset's metadata.json; Table 4's random
     and expert returns become Minari's ref_min_score / ref_max_score where the task has them.
     """
+    check_dataset_id(dataset_id)
+    with writing(dataset_id):
+        return _write_dataset(dataset_id, episodes, metadata, jpeg, description, keep_on_interrupt)
+
+
+def _write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], metadata: dict[str, Any], jpeg: bool,
+                   description: str | None, keep_on_interrupt: bool):
+    """write_dataset, by the holder of the dataset's writer lock."""
     import minari
 
     from finetune.envs.references import REFERENCE_RETURNS
 
-    check_dataset_id(dataset_id)
     path = dataset_path(dataset_id)
-    if path.exists():
-        raise DatasetError(f"dataset {dataset_id!r} already exists at {path}: use another ID (e.g. the next version "
-                           "-vN) or delete that directory")
+
+    def refuse_existing() -> None:
+        if path.exists():
+            raise DatasetError(f"dataset {dataset_id!r} already exists at {path}: use another ID (e.g. the next version "
+                               "-vN) or delete that directory")
+
+    refuse_existing()
     settings = {**metadata, "complete": False}  # until the end: a writer killed on the way leaves it marked unfinished
-    dataset, with_success, stopped = None, None, False
+    dataset, with_success, stopped, made = None, None, False, False
     iterator = iter(episodes)
     try:
         while not stopped:
@@ -357,6 +455,8 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
                 with signals_deferred():  # a signal in the middle of writing an episode waits for its end
                     check_room(path, episode)
                     if dataset is None:
+                        refuse_existing()  # made meanwhile by a writer that takes no lock (not hauwm)
+                        made = True
                         with_success = "success" in episode
                         observation_space = gymnasium.spaces.Box(0, 255, episode["obs"].shape[2:] + (3,), np.uint8)
                         action_space = gymnasium.spaces.Box(-1.0, 1.0, episode["action"].shape[1:], np.float32)
@@ -387,8 +487,11 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
             if not keep_on_interrupt:
                 raise
             stopped = True
-    except BaseException:
-        shutil.rmtree(path, ignore_errors=True)
+    except BaseException as error:
+        if made:
+            shutil.rmtree(path, ignore_errors=True)
+            if isinstance(error, KeyboardInterrupt):
+                raise DeletedOnInterrupt(dataset_id) from None
         raise
     if stopped:
         raise KeptOnInterrupt(dataset)

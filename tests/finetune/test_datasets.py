@@ -488,3 +488,106 @@ def test_a_dataset_whose_writer_was_killed_is_refused_as_unfinished(datasets_roo
     assert main(["list"]) == 0
     listed = capsys.readouterr()
     assert re.search(unfinished, listed.err) and "test/killed-v0" not in listed.out
+
+
+# A writer that waits for a file to appear before each of its two episodes: the test looks at the dataset there.
+PAUSED_WRITER = """
+import sys, time
+from pathlib import Path
+import numpy as np
+from finetune.datasets import write_dataset
+
+def episodes():
+    steps = 4
+    episode = {"obs": np.zeros((steps + 1, 3, 64, 64), np.uint8), "action": np.zeros((steps + 1, 4), np.float32),
+               "reward": np.ones(steps + 1, np.float32), "success": np.zeros(steps + 1, np.float32),
+               "terminal": np.zeros(steps + 1, np.float32)}
+    for go in ("go1", "go2"):
+        print("waiting", go, flush=True)
+        while not (Path(sys.argv[2]) / go).exists():
+            time.sleep(0.05)
+        yield episode
+
+write_dataset(sys.argv[1], episodes(), {"task": "metaworld_drawer_close", "source": "random"})
+"""
+
+
+def test_a_dataset_being_written_refuses_a_second_writer_and_says_it_is_being_written(random_episodes, datasets_root,
+                                                                                        tmp_path, capsys):
+    """Two collects into one new ID both crashed, and the one Minari refused deleted what the other had written;
+    a reader of the dataset being written was told that its writer had been killed, and to delete it."""
+    import subprocess
+    import sys
+
+    writer = subprocess.Popen([sys.executable, "-c", PAUSED_WRITER, "test/busy-v0", str(tmp_path)], text=True,
+                              stdout=subprocess.PIPE, env={**os.environ, "MINARI_DATASETS_PATH": str(datasets_root)})
+    try:
+        busy = f"dataset 'test/busy-v0' is being written by another process \\(pid {writer.pid}\\): wait for it"
+        assert writer.stdout.readline() == "waiting go1\n"  # before its first episode: no directory yet
+        with pytest.raises(DatasetError, match=busy):
+            write_dataset("test/busy-v0", iter(random_episodes[:1]), {"task": TASK})
+        (tmp_path / "go1").touch()
+        assert writer.stdout.readline() == "waiting go2\n"  # its first episode is written
+        with pytest.raises(DatasetError, match=busy):
+            write_dataset("test/busy-v0", iter(random_episodes[:1]), {"task": TASK})
+        being_written = f"'test/busy-v0' at .* is being written \\(by pid {writer.pid}; 1 episodes so far\\): wait"
+        with pytest.raises(DatasetError, match=being_written):
+            load_episodes("test/busy-v0")
+        assert main(["list"]) == 0 and re.search(being_written, capsys.readouterr().err)
+        (tmp_path / "go2").touch()
+        assert writer.wait(timeout=120) == 0
+    finally:
+        writer.kill()
+    assert len(load_episodes("test/busy-v0")) == 2  # whole: the refused writers deleted nothing
+    assert not list(datasets_root.rglob(".*.writing"))
+
+
+def test_a_directory_not_named_as_a_dataset_is_listed_apart_not_a_traceback(random_episodes, datasets_root, capsys):
+    """Minari's own listing stopped with a TypeError at a directory without the -vN version (a backup copy), and so
+    did every message that lists the datasets there are."""
+    write_dataset("test/kept-v0", iter(random_episodes[:1]), {"task": TASK})
+    shutil.copytree(datasets_root / "test" / "kept-v0", datasets_root / "test" / "kept-backup")
+    assert main(["list"]) == 0
+    listed = capsys.readouterr()
+    assert "test/kept-v0" in listed.out and "kept-backup" not in listed.out
+    assert "damaged: test/kept-backup (dataset ID 'test/kept-backup' is not a Minari ID" in listed.err
+    with pytest.raises(DatasetError, match="'test/typo-v0' not found .* the datasets there: test/kept-v0$"):
+        load_episodes("test/typo-v0")
+
+
+def test_an_episode_that_ends_before_its_last_step_is_refused():
+    """A termination at step 3 of 8 was read as no terminal at all, and the steps after it trained on."""
+    space = gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8)
+    observations = np.zeros((9, 64, 64, 3), np.uint8)
+    buffer = EpisodeBuffer(observations=observations, actions=np.zeros((8, 4), np.float32), rewards=np.ones(8),
+                           terminations=np.eye(8, dtype=bool)[2], truncations=np.eye(8, dtype=bool)[-1])
+    with pytest.warns(UserWarning):
+        minari.create_dataset_from_buffers("test/ends-early-v0", [buffer], observation_space=space,
+                                           action_space=gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32))
+    with pytest.raises(DatasetError, match="episode 0: it ends at step 3 of 8 .* split it there"):
+        load_episodes("test/ends-early-v0")
+
+
+def test_ctrl_c_says_whether_a_dataset_was_begun_and_deleted(random_episodes, monkeypatch, capsys):
+    """Ctrl-C in a collect's first episode said "a dataset being written was deleted"; nothing had been written."""
+    from finetune.datasets import cli, minari_io
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "collect", interrupted)
+    assert main(["collect", "--task", TASK, "--policy", "random", "--episodes", "1", "--dataset-id", "test/x-v0"]) == 130
+    assert "hauwm datasets: interrupted; nothing was written" in capsys.readouterr().err
+    write_dataset("test/a-v0", iter(random_episodes[:1]), {"task": TASK})
+    write_dataset("test/b-v0", iter(random_episodes[1:2]), {"task": TASK})
+    iterate_episodes = minari_io.iterate_episodes
+
+    def cut_at_the_second_source(dataset_id, **kwargs):  # Ctrl-C as the merge reads its second source
+        if dataset_id == "test/b-v0":
+            raise KeyboardInterrupt
+        return iterate_episodes(dataset_id, **kwargs)
+
+    monkeypatch.setattr(minari_io, "iterate_episodes", cut_at_the_second_source)
+    assert main(["merge", "test/a-v0", "test/b-v0", "--out", "test/ab-v0"]) == 130
+    assert "hauwm datasets: interrupted; the part of test/ab-v0 written was deleted" in capsys.readouterr().err
+    assert "test/ab-v0" not in list_datasets()
