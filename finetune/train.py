@@ -93,16 +93,21 @@ def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, f
     from finetune.datasets.minari_io import hauwm_metadata, open_dataset
 
     try:
-        episodes = load_episodes(dataset_id, task=cfg.task, action_dim=action_dim, progress=False)
-        collected = hauwm_metadata(open_dataset(dataset_id))
+        dataset = open_dataset(dataset_id)
+        collected = hauwm_metadata(dataset)
+        for key in ("action_repeat", "fast_render"):
+            if key in collected and collected[key] != getattr(cfg, key):
+                raise FinetuneError(f"{flag} {dataset_id} was collected with {key}={collected[key]!r}, this run has "
+                                    f"{key}={getattr(cfg, key)!r}: set {key}: {collected[key]} in the config "
+                                    f"(--set {key}={collected[key]})")
+        if dataset.total_steps > cfg.replay_capacity:  # the replay would keep only the newest steps, without a word
+            raise FinetuneError(f"{flag} {dataset_id} holds {dataset.total_steps} steps, more than replay_capacity "
+                                f"{cfg.replay_capacity}: the run would train on its newest {cfg.replay_capacity} only; "
+                                f"--set replay_capacity={dataset.total_steps} (memory: about "
+                                f"{dataset.total_steps * 12.3e-6:.1f} GB of frames)")
+        return load_episodes(dataset_id, task=cfg.task, action_dim=action_dim, progress=False)
     except DatasetError as error:
         raise FinetuneError(f"{flag} {dataset_id}: {error}") from None
-    for key in ("action_repeat", "fast_render"):
-        if key in collected and collected[key] != getattr(cfg, key):
-            raise FinetuneError(f"{flag} {dataset_id} was collected with {key}={collected[key]!r}, this run has "
-                                f"{key}={getattr(cfg, key)!r}: set {key}: {collected[key]} in the config "
-                                f"(--set {key}={collected[key]})")
-    return episodes
 
 
 def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None,

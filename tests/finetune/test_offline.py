@@ -168,6 +168,10 @@ def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_con
                       progress=False)
     with pytest.raises(FinetuneError, match="no episode holds seq_len = 20"):
         train_offline(offline_config(tiny_config, tmp_path / "c", 2, seq_len=20), export_dir, progress=False)
+    # a dataset larger than the replay: the run trained on its newest episodes only, without a word
+    with pytest.raises(FinetuneError, match="--dataset test/two-episodes-v0 holds 24 steps, more than replay_capacity "
+                                            "20: the run would train on its newest 20 only; --set replay_capacity=24"):
+        train_offline(offline_config(tiny_config, tmp_path / "d", 2, replay_capacity=20), export_dir, progress=False)
 
 
 def test_the_frozen_disagreement_term_gives_the_actor_no_gradient(export_dir, tiny_config):
