@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import os
 import sys
 import time
@@ -25,7 +26,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from finetune.agent import Agent
+from finetune.agent import Agent, DivergedError
 from finetune.config import FinetuneConfig, FinetuneError, step_unit
 from finetune.logger import Logger
 from finetune.replay import Replay
@@ -175,9 +176,16 @@ def mean_metrics(metrics: list[dict[str, torch.Tensor]]) -> dict[str, float]:
 
 
 def close_window(window: LogWindow, updates: int) -> dict[str, float]:
-    """A log window's mean metrics and updates/s (`updates`: the update count now); the window begins again."""
+    """A log window's mean metrics and updates/s (`updates`: the update count now); the window begins again. A metric
+    that is not finite is a DivergedError: nothing is learned from an infinite loss (its gradients are clipped to
+    nothing, or turn the weights into NaN), and the run would go on for its whole budget."""
     now = time.perf_counter()
     metrics = mean_metrics(window.metrics)
+    if broken := [f"{name} {value:g}" for name, value in metrics.items() if not math.isfinite(value)]:
+        raise DivergedError(f"{', '.join(broken)} in updates {window.updates + 1}..{updates}: the agent's training has "
+                            "diverged, and checkpoint.pt and best.pt hold the agent as last saved. Rewards too large "
+                            "for float32's squares (beyond about 1e18: a dataset's?) do this; else lower model_lr, "
+                            "actor_lr or critic_lr, and start a new run")
     metrics["updates_per_s"] = (updates - window.updates) / (now - window.began)
     window.updates, window.began, window.metrics = updates, now, []
     return metrics

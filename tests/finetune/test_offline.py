@@ -244,3 +244,19 @@ def test_imagination_draws_the_next_latent_from_one_head_per_trajectory_or_from_
         heads = sample[:, 0].round()
         assert torch.allclose(sample, heads[:, None].expand_as(sample), atol=1e-4)  # one head per trajectory
         assert len(heads.unique()) > 1  # and not the same head for all
+
+
+def test_a_loss_that_is_not_finite_stops_the_run_and_names_it(export_dir, tiny_config, tmp_path, minari_dataset,
+                                                               random_episodes):
+    """Rewards of 1e38 are finite, so the dataset was read; their squared error is not, every update's loss was inf
+    and clipped to nothing, and the run ended with status 0 having learned nothing."""
+    from finetune.agent import DivergedError
+
+    episodes = random_episodes(2, 12, 4)
+    for episode in episodes:
+        episode["reward"][1:] = 1e38
+    minari_dataset("test/huge-rewards-v0", episodes, "metaworld_drawer_close")
+    cfg = offline_config(tiny_config, tmp_path / "huge", 4, dataset="test/huge-rewards-v0")
+    with pytest.raises(DivergedError, match=r"model_loss inf, reward_nll inf.* in updates 1\.\.1: the agent's training "
+                                            r"has diverged.* Rewards too large"):
+        train_offline(cfg, export_dir, progress=False)
