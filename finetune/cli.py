@@ -127,6 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     stopped, status = "", 0
     try:
         overrides = dict(parse_override(text) for text in args.set)
+        if "paradigm" in overrides:
+            raise ConfigError(f"the paradigm is chosen by the command ({', '.join(f'`{c}`' for c in COMMANDS.values())}), "
+                              f"not by a setting: drop --set paradigm={overrides['paradigm']}")
         for key in ("steps", "logdir", "seed", "device", "dataset", "demos"):
             if getattr(args, key, None) is not None:
                 overrides[key] = getattr(args, key)

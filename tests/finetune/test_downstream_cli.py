@@ -52,6 +52,10 @@ def test_a_config_of_another_paradigm_is_refused_with_the_right_command(runners,
             capsys.readouterr().err)
     assert main(["offline", "--config", "configs/offline/demo.yaml", "--dataset", "x", "--set", "demos=y"]) == 2
     assert "setting demos belongs to `hauwm finetune imitate --demos ID`" in capsys.readouterr().err
+    # the message said the file was a config for online training: --set had changed what the file says
+    assert main(["offline", "--config", "configs/offline/demo.yaml", "--dataset", "x", "--set", "paradigm=online"]) == 2
+    assert ("the paradigm is chosen by the command (`hauwm finetune`, `hauwm finetune offline`, `hauwm finetune "
+            "imitate`), not by a setting: drop --set paradigm=online") in capsys.readouterr().err
     assert not runners
 
 
