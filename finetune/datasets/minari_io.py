@@ -67,10 +67,16 @@ class KeptOnInterrupt(KeyboardInterrupt):
 
 
 def dataset_path(dataset_id: str | None = None) -> Path:
-    """Where dataset `dataset_id` lives (whether or not it exists): $MINARI_DATASETS_PATH/<ID>; None: the root."""
+    """Where dataset `dataset_id` lives (whether or not it exists): $MINARI_DATASETS_PATH/<ID>; None: the root (made
+    where it does not exist, as Minari does)."""
     from minari.storage.datasets_root_dir import get_dataset_path
 
-    return get_dataset_path(dataset_id)
+    try:
+        return get_dataset_path(dataset_id)
+    except OSError as error:  # the root cannot be made: a file there, a directory not writable
+        root = os.environ.get("MINARI_DATASETS_PATH", "~/.minari/datasets (the default)")
+        raise DatasetError(f"MINARI_DATASETS_PATH={root}: the datasets' directory cannot be made there "
+                           f"({error.strerror or error}): set MINARI_DATASETS_PATH to a directory") from None
 
 
 def check_dataset_id(dataset_id: str) -> None:

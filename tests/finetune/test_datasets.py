@@ -591,3 +591,11 @@ def test_ctrl_c_says_whether_a_dataset_was_begun_and_deleted(random_episodes, mo
     assert main(["merge", "test/a-v0", "test/b-v0", "--out", "test/ab-v0"]) == 130
     assert "hauwm datasets: interrupted; the part of test/ab-v0 written was deleted" in capsys.readouterr().err
     assert "test/ab-v0" not in list_datasets()
+
+
+def test_a_datasets_path_that_is_a_file_is_named_as_the_variable(tmp_path, monkeypatch, capsys):
+    (tmp_path / "afile").touch()
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "afile"))
+    assert main(["list"]) == 2
+    assert (f"hauwm datasets: error: MINARI_DATASETS_PATH={tmp_path / 'afile'}: the datasets' directory cannot be made "
+            "there (File exists): set MINARI_DATASETS_PATH to a directory") in capsys.readouterr().err
