@@ -140,6 +140,10 @@ def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -
                           f"{', '.join(manifest['splits'])}); {remedy}")
     shards = manifest["splits"][split]["shards"]
     urls = [shard_url.format(name=s["name"]) if shard_url else str(Path(directory) / s["name"]) for s in shards]
+    if not shard_url and (missing := [url for url in urls if not Path(url).is_file()]):  # met by a worker, mid-epoch
+        raise LoaderError(f"{len(missing)} of the {len(urls)} {split} shards listed in "
+                          f"{Path(directory) / MANIFEST_FILE} are missing, e.g. {missing[0]}: copy them back, or "
+                          f"{VERIFY_HINT}")
     counts = [{int(frames): n for frames, n in s["frame_counts"].items()} for s in shards]
     size = manifest["settings"]["size"]  # sizes the workers' batch slots; a batch larger than a slot goes without
     return ShardSet(split, urls, counts, size if isinstance(size, int) and size > 0 else ShardSet.frame_size)

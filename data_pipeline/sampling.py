@@ -90,12 +90,13 @@ def gap_shares(frame_counts: dict[int, int], length: int, k_max: int) -> np.ndar
 
 def gap_range_note(frame_counts: dict[int, int], length: int, k_max: int, where: str) -> str | None:
     """A line saying how far the gaps drawn from these clips fall short of U{1..K_max} (None when the longest gap
-    keeps at least half its share): `where` names the settings, e.g. "--data.k_max 5 with --data.seq_len 16"."""
+    keeps at least half its share, or where no clip holds `length` frames: the caller refuses that): `where` names
+    the settings, e.g. "--data.k_max 5 with --data.seq_len 16"."""
+    clips = sum(n for frames, n in frame_counts.items() if frames >= length)
     shares = gap_shares(frame_counts, length, k_max)
-    if k_max == 1 or shares[-1] >= 0.5 / k_max:
+    if k_max == 1 or clips == 0 or shares[-1] >= 0.5 / k_max:
         return None
     span = 1 + (length - 1) * k_max
-    clips = sum(n for frames, n in frame_counts.items() if frames >= length)
     shorter = sum(n for frames, n in frame_counts.items() if length <= frames < span)
     mean = float(np.arange(1, k_max + 1) @ shares)
     return (f"{where}: a sequence spans up to {span} frames, but {shorter} of the {clips} clips are shorter, and on "

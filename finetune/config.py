@@ -20,7 +20,7 @@ from pathlib import Path
 import yaml
 
 from model.compiling import COMPILE_SETTINGS
-from model.config import ConfigError, not_yaml
+from model.config import ConfigError, UniqueKeyLoader, not_yaml
 
 PARADIGMS = ("online", "offline", "imitation")
 PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
@@ -164,21 +164,6 @@ def step_unit(paradigm: str) -> tuple[str, str]:
     """What a paradigm's `steps` and cadences count, as (its words, its counters' key): offline RL never acts, so it
     counts gradient updates; online RL and imitation count env steps."""
     return ("update", "updates") if paradigm == "offline" else ("env step", "env_step")
-
-
-class UniqueKeyLoader(yaml.SafeLoader):
-    """yaml.safe_load's loader, except that a key written twice in one mapping is an error (YAML itself keeps the
-    last: a second `task:` further down a config would silently train another task)."""
-
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
-        seen: set[object] = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            if key in seen:
-                raise yaml.constructor.ConstructorError(None, None, f"{key!r} is set twice: keep one",
-                                                        key_node.start_mark)
-            seen.add(key)
-        return super().construct_mapping(node, deep)
 
 
 def load_config(path: str | Path | None, overrides: dict[str, object] | None = None) -> FinetuneConfig:

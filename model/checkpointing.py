@@ -66,11 +66,12 @@ class LastStepCheckpoint(Callback):
 
 def save_last(trainer: lightning.Trainer, unless_due: bool) -> None:
     """Write last.ckpt through each save-last ModelCheckpoint that has not written this step's (`unless_due`: nor
-    will at this batch's end); its protected methods are the ones it uses itself."""
+    will at this batch's end), unless it writes nothing now (`--trainer.fast_dev_run`, whose last.ckpt a real fit in
+    the same directory then resumed from); its protected methods are the ones it uses itself."""
     for callback in trainer.checkpoint_callbacks:
         if not (isinstance(callback, ModelCheckpoint) and callback.save_last):
             continue
         every = callback._every_n_train_steps
         due = unless_due and every > 0 and trainer.global_step % every == 0
-        if not due and callback._last_global_step_saved != trainer.global_step:
+        if not due and not callback._should_skip_saving_checkpoint(trainer):
             callback._save_last_checkpoint(trainer, callback._monitor_candidates(trainer))

@@ -9,12 +9,14 @@ Every setting that defines the architecture (and so the shapes of the exported w
 - the export writes it under "world_model" in config.json (schema_version 2; version 1 held the keys flat),
   and fine-tuning rebuilds the frozen model from it.
 
-`ConfigError` is every stage's error for a bad setting (`not_yaml`: for a config file YAML cannot read).
+`ConfigError` is every stage's error for a bad setting (`not_yaml`: for a config file YAML cannot read;
+`UniqueKeyLoader` reads config files, refusing a key set twice).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -34,6 +36,21 @@ def not_yaml(path: Path, err: yaml.YAMLError | UnicodeDecodeError) -> ConfigErro
     mark = getattr(err, "problem_mark", None)
     where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
     return ConfigError(f"config file {path} is not valid YAML: {getattr(err, 'problem', None) or err}{where}")
+
+
+class UniqueKeyLoader(yaml.SafeLoader):
+    """yaml.safe_load's loader, except that a key written twice in one mapping is an error (YAML itself keeps the
+    last: a second `task:` further down a config would silently train another task)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: set[object] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"{key!r} is set twice: keep one",
+                                                        key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
 
 
 # a field's annotation → the Python types it accepts (an int where a float is asked is fine) and its name in errors
@@ -79,6 +96,8 @@ class WorldModelConfig:
                 raise ConfigError(f"world_model.{field.name} must be {what}, got {value!r}")
             if field.type == "int" and value < 1:
                 raise ConfigError(f"world_model.{field.name} must be ≥ 1, got {value}")
+            if field.type == "float" and not math.isfinite(value):  # NaN passed every range check below
+                raise ConfigError(f"world_model.{field.name} must be a finite number, got {value}")
         if self.temporal_mode not in MODES:
             raise ConfigError(f"world_model.temporal_mode must be one of {MODES}, got {self.temporal_mode!r}")
         if self.temporal_dim % 2:

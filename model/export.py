@@ -58,6 +58,9 @@ class FrozenWorldModel(WorldModel):
 def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, Any] | None = None) -> Path:
     """Write weights.safetensors and config.json for `model` into out_dir; returns out_dir."""
     out = Path(out_dir)
+    if diverged := non_finite(model.state_dict()):
+        raise ExportError(f"the model's weights are not finite ({diverged[0]} holds NaN or inf; {len(diverged)} tensors "
+                          f"do): it diverged; nothing was written to {out}: export an earlier checkpoint")
     if out.exists() and not out.is_dir():
         raise ExportError(f"--out {out} is a file, not a directory: an export is a directory of two files; choose "
                           "another --out")

@@ -31,9 +31,12 @@ def saved_step(checkpoint: Path) -> str:
 
 
 def newest_checkpoint(trainer: lightning.Trainer) -> Path | None:
-    """The newest checkpoint file any of the fit's ModelCheckpoints has written (a config may have several)."""
-    written = [Path(path) for callback in trainer.checkpoint_callbacks
-               for path in (callback.last_model_path, callback.best_model_path) if path and Path(path).is_file()]
+    """The newest checkpoint file of the fit: any of its ModelCheckpoints has written (a config may have several), or
+    the one it resumed from (which those know only where Lightning restored their state: not for a run moved, or
+    resumed with other checkpoint settings)."""
+    paths = [path for callback in trainer.checkpoint_callbacks for path in (callback.last_model_path,
+                                                                             callback.best_model_path)]
+    written = [Path(path) for path in (*paths, trainer.ckpt_path) if path and Path(path).is_file()]
     return max(written, key=lambda path: path.stat().st_mtime, default=None)
 
 

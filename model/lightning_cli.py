@@ -30,7 +30,7 @@ from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from data_pipeline.datamodule import ShardDataModule
 from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
 from model.cli import refuse_other_frame_size
-from model.config import ConfigError, WorldModelConfig, not_yaml
+from model.config import ConfigError, UniqueKeyLoader, WorldModelConfig, not_yaml
 from model.export import checkpoint_world_model, read_checkpoint
 from model.interrupt import FitInterrupted, ResumeNotice
 from model.module import PretrainModule, refuse_other_size
@@ -73,10 +73,17 @@ def last_checkpoint(trainer_config) -> Path:
 # -- checks of the arguments, the resume and the trainer, before anything is built ----------------------
 
 
+# setting groups a config file may hold; one written with no settings under it (its lines commented out) reads as
+# null, which the parser takes as "every setting of the group at its default", undoing the configs before it
+GROUPS = (("model",), ("data",), ("trainer",), ("model", "world_model"))
+
+
 def refuse_bad_configs(args: list[str]) -> None:
-    """A --config file that is not YAML, named with its line (the parser says "<unicode string>", whichever file it
-    was); the sizes moved under model.world_model: an old-style flag or config key named with its new place (the
-    parser alone would only say that `model` does not accept it)."""
+    """What the parser would take silently, or report without naming the --config file (it says "<unicode
+    string>", whichever file it was): a file that is not YAML (named with its line), a key set twice, a file with
+    no settings, a group with none (null: it reset that group's settings), model.k_max (the parser ignored it: it
+    is data.k_max's), and the sizes moved under model.world_model (an old-style flag or key named with its new
+    place)."""
     sizes = {field.name for field in dataclasses.fields(WorldModelConfig)}
     for index, arg in enumerate(args):
         flag, _, value = arg.partition("=")
@@ -85,11 +92,28 @@ def refuse_bad_configs(args: list[str]) -> None:
         if flag not in ("--config", "-c"):
             continue
         path = Path(value or (args[index + 1] if index + 1 < len(args) else ""))
+        if not path.is_file():
+            continue  # the parser names it
         try:
-            config = yaml.safe_load(path.read_text()) if path.is_file() else None
-        except (yaml.YAMLError, UnicodeDecodeError) as err:  # the parser would not say which of the --config files
+            config = yaml.load(path.read_text(), UniqueKeyLoader)
+        except (yaml.YAMLError, UnicodeDecodeError) as err:
             raise not_yaml(path, err) from None
-        model = config.get("model") if isinstance(config, dict) else None
+        if not isinstance(config, dict):
+            raise ConfigError(f"config file {path} holds {'no settings' if config is None else repr(config)[:40]}, not "
+                              "a mapping of settings (model:, data:, trainer:); give it some, or drop --config")
+        for group in GROUPS:
+            parent = config
+            for key in group[:-1]:
+                parent = parent.get(key) if isinstance(parent, dict) else None
+            if isinstance(parent, dict) and group[-1] in parent and parent[group[-1]] is None:
+                name = ".".join(group)
+                raise ConfigError(f"config file {path}: `{group[-1]}:` ({name}) holds no settings (YAML reads it as "
+                                  f"null, which resets every {name} setting the configs before it made): delete that "
+                                  "line, or give it a setting")
+        model = config.get("model")
+        if isinstance(model, dict) and "k_max" in model:
+            raise ConfigError(f"config file {path}: model.k_max is data.k_max's (the sampler's largest gap, which the "
+                              f"model reads): write `data: {{k_max: {model['k_max']}}}` instead")
         flat = sorted(sizes & set(model)) if isinstance(model, dict) else []
         if flat:
             raise ConfigError(f"{path}: model.{flat[0]} (like every size) now belongs under model.world_model, "
@@ -184,7 +208,9 @@ def settle_trainer(trainer, subcommand: str) -> None:
                           "the fit's SIGTERM handling (no last.ckpt, no exit 143) nor its stop notice; use "
                           "--trainer.strategy ddp (one process a device, as torchrun and SLURM start them)")
     checkpointers = [callback for callback in trainer.callbacks or [] if names_a_model_checkpoint(callback)]
-    if subcommand == "validate":  # writes no checkpoint; restoring one into it only warns of its dirpath
+    # validate writes no checkpoint (restoring one into it only warns of its dirpath); nor does a fast_dev_run, as
+    # Lightning says, but its ModelCheckpoint wrote last.ckpt at the end (2.6), which the real fit then resumed
+    if subcommand == "validate" or trainer.fast_dev_run:
         trainer.enable_checkpointing = False
         trainer.callbacks = [callback for callback in trainer.callbacks or [] if callback not in checkpointers]
     elif trainer.enable_checkpointing is False and checkpointers:  # Lightning would refuse the pair

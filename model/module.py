@@ -49,6 +49,10 @@ def check_settings(world_model: WorldModelConfig, k_max: int, lambda_init: float
                    hcu_target: float, lr: float, lambda_lr: float, grad_clip: float, kl_scale: float) -> None:
     """Raise ConfigError naming the first setting out of its range, before anything is built."""
     world_model.validate()
+    for name, value in (("lambda_init", lambda_init), ("kl_balance", kl_balance), ("hcu_target", hcu_target),
+                        ("lr", lr), ("lambda_lr", lambda_lr), ("grad_clip", grad_clip), ("kl_scale", kl_scale)):
+        if not math.isfinite(value):  # 1e999 reads as inf, and .nan passed every range check below
+            raise ConfigError(f"model.{name} must be a finite number, got {value}")
     if lambda_init > 0 and world_model.ensemble < 2:
         raise ConfigError(
             "HCU needs an ensemble of at least 2 heads to measure disagreement, but "

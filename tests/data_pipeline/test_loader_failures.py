@@ -232,3 +232,11 @@ def test_the_cli_prints_a_worker_failure_without_a_traceback(built_shards, tmp_p
     assert status == 2
     assert "hauwm pretrain fit: error: DataLoader worker" in error and f"reading shard {broken}" in error
     assert "Traceback" not in error
+
+
+def test_a_shard_missing_from_the_directory_is_named_before_any_worker_starts(built_shards, tmp_path):
+    """A deleted tar was met by a worker in the middle of an epoch, as a bare FileNotFoundError."""
+    shards, broken = copy_with_broken_shard(built_shards, tmp_path, lambda shard: shard.unlink())
+    with pytest.raises(LoaderError, match=rf"^1 of the \d+ train shards listed in {shards / 'manifest.json'} are "
+                                          rf"missing, e.g. {broken}: copy them back, or check the shards with"):
+        shard_set(shards, "train")

@@ -71,3 +71,4 @@ def test_gap_shares_are_those_the_sampler_draws_and_the_note_comes_when_long_gap
     note = gap_range_note(clips, 13, 20, "--data.k_max 20 with --data.seq_len 13")
     assert note.startswith("--data.k_max 20 with --data.seq_len 13: a sequence spans up to 241 frames, but 6 of the 6 "
                            "clips are shorter") and "(5.0% under U{1..20}), the mean gap" in note
+    assert gap_range_note(clips, 500, 5, "--data.seq_len 500") is None  # no clip holds 500: "0 of the 0 clips" said

@@ -603,3 +603,72 @@ def test_an_export_into_something_that_is_not_a_directory_of_files_is_refused(ti
     assert main(["export", checkpoint, "--out", str(tmp_path / "file")]) == 2
     assert f"--out {tmp_path / 'file'} is a file, not a directory" in capsys.readouterr().err
     assert (tmp_path / "file").read_text() == "a user's"
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    # an overlay whose group's settings are all commented out reads as null: the fit trained the paper-size model
+    ("model:\n  # lr: 0.01\n", "`model:` (model) holds no settings (YAML reads it as null, which resets every model "
+                               "setting the configs before it made): delete that line"),
+    ("trainer:\n", "`trainer:` (trainer) holds no settings"),  # it dropped the config's ModelCheckpoint: no last.ckpt
+    ("model:\n  world_model:\n    # deter: 8\n", "`world_model:` (model.world_model) holds no settings"),  # traceback
+    ("model:\n  k_max: 7\n", "model.k_max is data.k_max's (the sampler's largest gap, which the model reads): write "
+                             "`data: {k_max: 7}` instead"),  # ignored: the fit trained with k_max 5
+    ("model:\n  lr: 0.001\n  lr: 0.5\n", "is not valid YAML: 'lr' is set twice: keep one at line 3"),  # 0.5 won
+    ("# nothing yet\n", "holds no settings, not a mapping of settings"),  # "Unexpected config: "
+    ("42\n", "holds 42, not a mapping of settings"),
+    # non-finite values passed the range checks: weights went NaN, HCU was off, or every step was skipped
+    ("model:\n  lambda_init: .nan\n", "model.lambda_init must be a finite number, got nan"),
+    ("model:\n  hcu_target: .inf\n", "model.hcu_target must be a finite number, got inf"),
+    ("model:\n  lr: 1e999\n", "model.lr must be a finite number, got inf"),
+    ("model:\n  world_model:\n    reference_length: .nan\n", "world_model.reference_length must be a finite number"),
+])
+def test_a_config_file_that_would_train_other_settings_without_a_word_is_refused(built_shards, tmp_path, capsys, text,
+                                                                                  message):
+    overlay = tmp_path / "overlay.yaml"
+    overlay.write_text(text)
+    assert fit(built_shards, tmp_path, "--config", str(overlay)) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err, err[-1500:]
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_a_diverged_checkpoint_is_not_exported_and_leaves_the_export_there_whole(tiny_run, tiny_export, tmp_path,
+                                                                                capsys):
+    """`export bad.ckpt --out E --overwrite` replaced a good export with NaN weights; only a later run refused them."""
+    state = torch.load(tiny_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    name = next(name for name, tensor in state["state_dict"].items() if tensor.is_floating_point() and "decoder" in name)
+    state["state_dict"][name] = torch.full_like(state["state_dict"][name], float("nan"))
+    torch.save(state, tmp_path / "diverged.ckpt")
+    out = tmp_path / "export"
+    shutil.copytree(tiny_export, out)
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+    assert main(["export", str(tmp_path / "diverged.ckpt"), "--out", str(out), "--overwrite"]) == 2
+    assert (f"the model's weights are not finite ({name.removeprefix('world_model.')} holds NaN or inf; 1 tensors do): "
+            f"it diverged; nothing was written to {out}") in capsys.readouterr().err
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before
+
+
+def test_fast_dev_run_writes_no_checkpoint(built_shards, tmp_path):
+    """Lightning's fast_dev_run promises no checkpoint; the fit wrote last.ckpt of step 1, which the real fit in the
+    same directory then refused to start beside (or `--ckpt_path last` carried on from)."""
+    assert fit(built_shards, tmp_path, "--trainer.fast_dev_run", "true") == 0
+    assert not list(tmp_path.rglob("*.ckpt"))
+
+
+def test_a_stopped_fit_of_a_moved_run_names_the_checkpoint_it_resumed_from(built_shards, tiny_run, tmp_path, capsys,
+                                                                          monkeypatch):
+    """A run copied elsewhere and resumed: its ModelCheckpoint knew of no checkpoint (Lightning restores its state only
+    for the same directory), and a stop before its first save said "no checkpoint was written yet"."""
+    from model.module import PretrainModule
+
+    shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
+    step = PretrainModule.training_step
+
+    def interrupted(module, batch, batch_idx):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(PretrainModule, "training_step", interrupted)
+    assert fit(built_shards, tmp_path, "--ckpt_path", str(tmp_path / "checkpoints" / "last.ckpt"),
+               "--trainer.max_steps", str(RUN_STEPS + 5)) == 130
+    assert (f"interrupted at step {RUN_STEPS}; resume with --ckpt_path {tmp_path / 'checkpoints' / 'last.ckpt'} (step "
+            f"{RUN_STEPS}, written") in capsys.readouterr().err and step
