@@ -128,8 +128,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         overrides = dict(parse_override(text) for text in args.set)
         if "paradigm" in overrides:
-            raise ConfigError(f"the paradigm is chosen by the command ({', '.join(f'`{c}`' for c in COMMANDS.values())}), "
-                              f"not by a setting: drop --set paradigm={overrides['paradigm']}")
+            commands = ", ".join(f"`{command}`" for command in COMMANDS.values())
+            raise ConfigError(f"the paradigm is chosen by the command ({commands}), not by a setting: drop --set "
+                              f"paradigm={overrides['paradigm']}")
         for key in ("steps", "logdir", "seed", "device", "dataset", "demos"):
             if getattr(args, key, None) is not None:
                 overrides[key] = getattr(args, key)

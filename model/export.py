@@ -86,7 +86,7 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
     }
     # both written beside their names first, then renamed one after the other: a full disk or a kill while they are
     # written (seconds at paper sizes) leaves an export replaced with --overwrite as it was, whole; only a kill between
-    # the two renames could pair the new weights with the old config.json
+    # the two renames could pair the new config.json with the old weights
     with contextlib.ExitStack() as renames:  # on leaving: config.json renamed, then the weights
         for name, data in ((WEIGHTS_FILE, weights), (CONFIG_FILE, (json.dumps(config, indent=2) + "\n").encode())):
             renames.enter_context(written_whole(out / name)).write_bytes(data)

@@ -93,7 +93,8 @@ def check_dataset_id(dataset_id: str) -> None:
 def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     """Under $MINARI_DATASETS_PATH, where Minari's `list_local_datasets` looks (every directory holding `data/`,
     below directories not hidden): (every readable dataset's ID -> its metadata; every other's ID -> a line saying
-    why it cannot be read and what to do). Done here, as Minari 0.5 stops with a TypeError at a directory not named `name-vN`."""
+    why it cannot be read and what to do). Done here: Minari 0.5's listing stops with a TypeError at a directory
+    not named `name-vN`."""
     from minari.dataset.minari_storage import MinariStorage
 
     datasets, damaged = {}, {}

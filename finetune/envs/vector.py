@@ -15,11 +15,12 @@
   cannot build its env says why in one line and the parent raises `EnvWorkerError` naming the task; one
   that dies later (a crash in the simulator, the out-of-memory killer) is named with its seed and cause.
   Workers (and the fork server) ignore SIGINT: a terminal's Ctrl-C reaches the whole process group, and the
-  learner, not each worker, decides what an interrupt does (`closing_envs` ends them, with SIGKILL where SIGTERM does not do it:
-  a stopped worker). A worker that has not answered a step or reset for ANSWER_TIMEOUT_S (stopped by SIGSTOP,
-  stuck in its renderer), or for STOP_GRACE_S once the run was asked to stop (SIGTERM), is named with the state of
-  its process in an EnvWorkerError, instead of the run waiting for it forever. A worker whose learner is gone
-  (killed) ends at once and without a word (`quiet_worker`). Frames come back through shared memory.
+  learner, not each worker, decides what an interrupt does (`closing_envs` ends them, with SIGKILL where SIGTERM
+  does not do it: a stopped worker). A worker that has not answered a step or reset for ANSWER_TIMEOUT_S
+  (stopped by SIGSTOP, stuck in its renderer), or for STOP_GRACE_S once the run was asked to stop (SIGTERM), is
+  named with the state of its process in an EnvWorkerError, instead of the run waiting for it forever. A worker
+  whose learner is gone (killed) ends at once and without a word (`quiet_worker`). Frames come back through
+  shared memory.
 - Workers are pinned to CPUs (`pin=True`, the default; Linux), the way Sample Factory pins its rollout
   workers: with N envs on C usable CPUs (`os.sched_getaffinity`), worker i gets CPU i mod C when C
   divides N, and its own block of C/N CPUs when N divides C; otherwise nothing is pinned. Every CPU gets
@@ -153,9 +154,9 @@ class WorkerEnvs(AsyncVectorEnv):
             if stop_seen is None and self.stopping():
                 stop_seen = now
             if waiting and (now - start >= self.answer_timeout or (stop_seen and now - stop_seen >= STOP_GRACE_S)):
-                silent = [f"env worker {index} of {self.name} (seed {self.seeds[index]}, pid {self.processes[index].pid}) "
-                          f"has not answered its {call} in {now - start:.0f} s: {process_state(self.processes[index].pid)}"
-                          for index in sorted(waiting.values())]
+                silent = [f"env worker {index} of {self.name} (seed {self.seeds[index]}, pid {process.pid}) has not "
+                          f"answered its {call} in {now - start:.0f} s: {process_state(process.pid)}"
+                          for index in sorted(waiting.values()) for process in [self.processes[index]]]
                 raise EnvWorkerError("; ".join(silent))
 
     @contextlib.contextmanager
