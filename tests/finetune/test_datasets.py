@@ -452,22 +452,26 @@ def test_a_relative_datasets_path_is_read_from_the_directory_the_command_ran_in(
     assert (tmp_path / "relative-root" / "test" / "relative-v0" / "data" / "main_data.hdf5").is_file()
 
 
-KILLED_WRITER = """
-import os, signal, sys
+# A script that writes dataset sys.argv[1] from the episodes its `episodes()` yields (each the same 4 steps).
+WRITER = """
+import os, signal, sys, time
+from pathlib import Path
 import numpy as np
 from finetune.datasets import write_dataset
 
-def episodes():
-    steps = 4
-    episode = {"obs": np.zeros((steps + 1, 3, 64, 64), np.uint8), "action": np.zeros((steps + 1, 4), np.float32),
-               "reward": np.ones(steps + 1, np.float32), "success": np.zeros(steps + 1, np.float32),
-               "terminal": np.zeros(steps + 1, np.float32)}
-    yield episode
-    yield episode
-    os.kill(os.getpid(), signal.SIGKILL)  # the writer dies between two episodes, with no chance to clean up
-
+STEPS = 4
+EPISODE = {"obs": np.zeros((STEPS + 1, 3, 64, 64), np.uint8), "action": np.zeros((STEPS + 1, 4), np.float32),
+           "reward": np.ones(STEPS + 1, np.float32), "success": np.zeros(STEPS + 1, np.float32),
+           "terminal": np.zeros(STEPS + 1, np.float32)}
+{episodes}
 write_dataset(sys.argv[1], episodes(), {"task": "metaworld_drawer_close", "source": "random"})
 """
+KILLED_WRITER = WRITER.replace("{episodes}", """
+def episodes():
+    yield EPISODE
+    yield EPISODE
+    os.kill(os.getpid(), signal.SIGKILL)  # the writer dies between two episodes, with no chance to clean up
+""")
 
 
 def test_a_dataset_whose_writer_was_killed_is_refused_as_unfinished(datasets_root, capsys):
@@ -491,25 +495,14 @@ def test_a_dataset_whose_writer_was_killed_is_refused_as_unfinished(datasets_roo
 
 
 # A writer that waits for a file to appear before each of its two episodes: the test looks at the dataset there.
-PAUSED_WRITER = """
-import sys, time
-from pathlib import Path
-import numpy as np
-from finetune.datasets import write_dataset
-
+PAUSED_WRITER = WRITER.replace("{episodes}", """
 def episodes():
-    steps = 4
-    episode = {"obs": np.zeros((steps + 1, 3, 64, 64), np.uint8), "action": np.zeros((steps + 1, 4), np.float32),
-               "reward": np.ones(steps + 1, np.float32), "success": np.zeros(steps + 1, np.float32),
-               "terminal": np.zeros(steps + 1, np.float32)}
     for go in ("go1", "go2"):
         print("waiting", go, flush=True)
         while not (Path(sys.argv[2]) / go).exists():
             time.sleep(0.05)
-        yield episode
-
-write_dataset(sys.argv[1], episodes(), {"task": "metaworld_drawer_close", "source": "random"})
-"""
+        yield EPISODE
+""")
 
 
 def test_a_dataset_being_written_refuses_a_second_writer_and_says_it_is_being_written(random_episodes, datasets_root,
