@@ -190,7 +190,7 @@ def test_a_signal_while_an_episode_is_written_waits_for_its_end(random_episodes,
     def signalled_during_the_second(dataset, buffers) -> None:
         writes.append(len(writes))
         if len(writes) == 2:
-            os.kill(os.getpid(), signum)  # Python runs the handler at once, in the middle of this write
+            signal.raise_signal(signum)  # to this thread, whose handler Python runs at once, mid-write
         write(dataset, buffers)
 
     monkeypatch.setattr(minari.MinariDataset, "update_dataset_from_buffer", signalled_during_the_second)
