@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import fcntl
 import hashlib
-import os
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -36,6 +34,7 @@ import yaml
 from finetune.agent import Agent, DivergedError
 from finetune.config import FinetuneConfig, FinetuneError, load_config, step_unit
 from hauwm.atomic import written_whole
+from hauwm.pid_lock import LockHeld, pid_lock
 from model.config import ConfigError
 from model.export import WEIGHTS_FILE, non_finite, torch_load_failure
 
@@ -54,16 +53,12 @@ def exclusive(logdir: Path) -> Iterator[None]:
     lock_made = not (logdir / LOCK).exists()
     logdir.mkdir(parents=True, exist_ok=True)
     there = {path.name for path in logdir.iterdir()}
-    with open(logdir / LOCK, "a+") as lock:
+    with contextlib.ExitStack() as held:
         try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            lock.seek(0)
-            raise FinetuneError(f"{logdir} is in use by another run (pid {lock.read().strip() or '?'}): wait for it "
-                                "to finish or pass another --logdir") from None
-        lock.truncate(0)
-        lock.write(str(os.getpid()))
-        lock.flush()
+            held.enter_context(pid_lock(logdir / LOCK))
+        except LockHeld as other:
+            raise FinetuneError(f"{logdir} is in use by another run (pid {other.pid}): wait for it to finish or pass "
+                                "another --logdir") from None
         try:
             yield
         finally:

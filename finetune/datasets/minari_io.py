@@ -21,7 +21,6 @@ with OpenCV's INTER_AREA. Every other mismatch is a `DatasetError` naming the da
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import os
 import shutil
@@ -37,6 +36,7 @@ import numpy as np
 from tqdm import tqdm
 
 from finetune.termination import signals_deferred
+from hauwm.pid_lock import LockHeld, lock_holder, pid_lock
 
 IMAGE_SIZE = 64  # the frames the world model is trained on
 IMAGE_KEYS = ("pixels", "image", "rgb", "observation", "obs")  # Dict observation entries tried in this order
@@ -97,7 +97,7 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     not named `name-vN`."""
     from minari.dataset.minari_storage import MinariStorage
 
-    datasets, damaged = {}, {}
+    root, datasets, damaged = dataset_path(), {}, {}
 
     def visit(directory: Path) -> None:
         for child in sorted(directory.iterdir()):
@@ -106,7 +106,7 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
             if not (child / "data").exists():
                 visit(child)
                 continue
-            dataset_id = child.relative_to(dataset_path()).as_posix()
+            dataset_id = child.relative_to(root).as_posix()
             try:
                 check_dataset_id(dataset_id)
                 metadata = MinariStorage.read_raw_metadata(child / "data")
@@ -119,8 +119,8 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
             except (DatasetError, OSError, ValueError, KeyError) as error:  # JSONDecodeError is a ValueError
                 damaged[dataset_id] = f"damaged: {dataset_id} ({error}): write it again, or delete {child}"
 
-    if dataset_path().is_dir():
-        visit(dataset_path())
+    if root.is_dir():
+        visit(root)
     return datasets, damaged
 
 
@@ -169,7 +169,7 @@ def unfinished(metadata: dict[str, Any]) -> bool:
 
 
 def unfinished_message(dataset_id: str, episodes: int) -> str:
-    if (pid := writer_pid(dataset_id)) is not None:
+    if (pid := lock_holder(writer_lock(dataset_id))) is not None:
         return (f"dataset {dataset_id!r} at {dataset_path(dataset_id)} is being written (by pid {pid}; {episodes} "
                 "episodes so far): wait for its writer to finish")
     return (f"dataset {dataset_id!r} at {dataset_path(dataset_id)} is unfinished: its writer (hauwm datasets collect "
@@ -185,44 +185,21 @@ def writer_lock(dataset_id: str) -> Path:
 
 @contextlib.contextmanager
 def writing(dataset_id: str) -> Iterator[None]:
-    """Hold the writer's lock of `dataset_id` (flock on `writer_lock`, which holds this process's pid) while the block
-    runs: two writers of one new ID both crashed, and the one refused by Minari deleted what the other had written.
-    A second writer is refused (DatasetError), and `writer_pid` tells a dataset being written from one whose writer
-    was killed (the kernel releases the lock of a process that dies)."""
+    """Hold the writer's lock of `dataset_id` (`hauwm.pid_lock` on `writer_lock`) while the block runs: two writers of
+    one new ID both crashed, and the one refused by Minari deleted what the other had written. A second writer is
+    refused (DatasetError), and `lock_holder` tells a dataset being written from one whose writer was killed."""
     path = writer_lock(dataset_id)
     path.parent.mkdir(parents=True, exist_ok=True)
-    while True:
-        lock = open(path, "a+")
+    with contextlib.ExitStack() as held:
         try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            lock.close()
-            raise DatasetError(f"dataset {dataset_id!r} is being written by another process (pid "
-                               f"{writer_pid(dataset_id) or '?'}): wait for it to finish, or use another ID") from None
-        if path.exists() and os.stat(path).st_ino == os.fstat(lock.fileno()).st_ino:
-            break
-        lock.close()  # the writer before deleted the file between our open and our lock: lock the new one
-    try:
-        lock.truncate(0)
-        lock.write(str(os.getpid()))
-        lock.flush()
-        yield
-    finally:
-        path.unlink(missing_ok=True)
-        lock.close()
-
-
-def writer_pid(dataset_id: str) -> int | None:
-    """The pid of the process writing `dataset_id` now, None where none is."""
-    try:
-        with open(writer_lock(dataset_id)) as lock:
-            try:
-                fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except BlockingIOError:
-                return int(lock.read().strip() or 0) or None
-    except (OSError, ValueError):
-        pass
-    return None
+            held.enter_context(pid_lock(path))
+        except LockHeld as other:
+            raise DatasetError(f"dataset {dataset_id!r} is being written by another process (pid {other.pid}): wait "
+                               "for it to finish, or use another ID") from None
+        try:
+            yield
+        finally:
+            path.unlink(missing_ok=True)
 
 
 def hauwm_metadata(dataset) -> dict[str, Any]:

@@ -1,0 +1,60 @@
+"""One process at a time: an exclusive lock on a file that holds its holder's pid (the kernel releases the lock of
+a process that dies, killed or not), for a fine-tuning run's directory and a dataset being written.
+
+    with pid_lock(path):      # LockHeld(pid) where another process holds it
+        ...
+    lock_holder(path)         # the pid holding it now, None where none does
+
+A holder may delete the file before it lets go; a process that opened the old file meanwhile locks the new one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+
+class LockHeld(Exception):
+    """Another process holds the lock; `pid` is what its file says ('?' where it says nothing yet)."""
+
+    def __init__(self, pid: str) -> None:
+        super().__init__(pid)
+        self.pid = pid
+
+
+@contextlib.contextmanager
+def pid_lock(path: Path) -> Iterator[None]:
+    """Hold an exclusive lock on `path` (made where it does not exist), with this process's pid written in it."""
+    while True:
+        lock = open(path, "a+")
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.seek(0)
+            pid = lock.read().strip() or "?"
+            lock.close()
+            raise LockHeld(pid) from None
+        if path.exists() and os.stat(path).st_ino == os.fstat(lock.fileno()).st_ino:
+            break
+        lock.close()  # the holder before deleted the file between our open and our lock: lock the new one
+    with lock:
+        lock.truncate(0)
+        lock.write(str(os.getpid()))
+        lock.flush()
+        yield
+
+
+def lock_holder(path: Path) -> int | None:
+    """The pid of the process holding the lock on `path` now, None where none does."""
+    try:
+        with open(path) as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return int(lock.read().strip() or 0) or None
+    except (OSError, ValueError):
+        pass
+    return None
