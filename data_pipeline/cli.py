@@ -94,10 +94,12 @@ def _sample_data(args: argparse.Namespace) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-    root = argparse.ArgumentParser(prog="hauwm shards", description="SSv2 → WebDataset shards, and tools for them.")
+    root = argparse.ArgumentParser(allow_abbrev=False,
+                                   prog="hauwm shards", description="SSv2 → WebDataset shards, and tools for them.")
     commands = root.add_subparsers(dest="command", required=True)
 
-    build = commands.add_parser("build", help="decode an SSv2 tree into 64×64 WebDataset shards (resumable)")
+    build = commands.add_parser("build", allow_abbrev=False,
+                                help="decode an SSv2 tree into 64×64 WebDataset shards (resumable)")
     flag = build.add_argument
     flag("--annotations", metavar="DIR", type=path, required=True, help="directory with something-something-v2-*.json")
     flag("--videos", metavar="DIR", type=path, required=True, help="directory with <id>.webm")
@@ -123,12 +125,14 @@ def parser() -> argparse.ArgumentParser:
               "missing videos are there); other failures are facts of the files and stay")
     build.set_defaults(run=_build)
 
-    inspect = commands.add_parser("inspect", help="counts per split, frames, bytes, errors by reason")
+    inspect = commands.add_parser("inspect", allow_abbrev=False,
+                                  help="counts per split, frames, bytes, errors by reason")
     inspect.add_argument("dir", type=path, help="shard directory (with manifest.json)")
     inspect.add_argument("--verify", action="store_true", help="re-check every shard against the manifest")
     inspect.set_defaults(run=_inspect)
 
-    preview = commands.add_parser("preview", help="a PNG grid of sampled sequences, frames along the rows")
+    preview = commands.add_parser("preview", allow_abbrev=False,
+                                  help="a PNG grid of sampled sequences, frames along the rows")
     flag = preview.add_argument
     flag("dir", type=path, help="shard directory (with manifest.json)")
     flag("--out", metavar="PNG", type=path, required=True, help="image file to write")
@@ -139,7 +143,8 @@ def parser() -> argparse.ArgumentParser:
     flag("--seed", metavar="N", type=at_least(0), default=0, help="seed of the gap draws (default 0)")
     preview.set_defaults(run=_preview)
 
-    sample = commands.add_parser("sample-data", help="write the built-in stochastic-scene dataset in SSv2's format")
+    sample = commands.add_parser("sample-data", allow_abbrev=False,
+                                 help="write the built-in stochastic-scene dataset in SSv2's format")
     flag = sample.add_argument
     flag("--out", metavar="DIR", type=path, required=True, help="output directory (annotations/, videos/)")
     flag("--clips", metavar="N", type=at_least(3), default=96,

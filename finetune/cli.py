@@ -44,7 +44,8 @@ def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
         example = "\n".join(line for line in __doc__.splitlines() if f"hauwm finetune {subcommand} " in line)
         description = (f"{SUBCOMMANDS[subcommand][3]} (docs/downstream.md)\n\n{example}\n\n--steps counts {unit}s; "
                        "running again with the same --logdir resumes from its checkpoint.")
-    p = argparse.ArgumentParser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(allow_abbrev=False,
+                                prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", required=True, help=f"YAML settings, e.g. {CONFIG_DIRS[paradigm]}/dmc_cheetah_run.yaml")
     p.add_argument("--pretrained", help="directory written by `hauwm pretrain export` (weights.safetensors + "
                                         "config.json); not needed with agent=scratch")
@@ -64,8 +65,9 @@ def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
 
 
 def evaluate_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hauwm finetune evaluate", description="Play a `hauwm finetune` run's agent (the "
-                                "actor's mode) on its task and print its mean return, normalised return and success rate.")
+    p = argparse.ArgumentParser(prog="hauwm finetune evaluate", allow_abbrev=False,
+                                description="Play a `hauwm finetune` run's agent (the actor's mode) on its task and print "
+                                            "its mean return, normalised return and success rate.")
     p.add_argument("rundir", type=Path, metavar="RUNDIR", help="the run directory (--logdir of the run)")
     p.add_argument("--pretrained", help="the export the run was trained on (not needed for agent=scratch runs)")
     p.add_argument("--best", action="store_true", help="play best.pt (the run's best evaluation) instead of its last checkpoint")

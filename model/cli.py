@@ -39,7 +39,8 @@ def refuse_other_frame_size(shards: str | Path, flag: str) -> None:
 def export_command(argv: list[str]) -> int:
     from model.export import CONFIG_FILE, WEIGHTS_FILE, ExportError, export_frozen, world_model_from_checkpoint
 
-    parser = argparse.ArgumentParser(prog="hauwm pretrain export", description="Write the frozen export of a checkpoint.")
+    parser = argparse.ArgumentParser(allow_abbrev=False,
+                                     prog="hauwm pretrain export", description="Write the frozen export of a checkpoint.")
     parser.add_argument("checkpoint", type=Path, help="a Lightning checkpoint of `hauwm pretrain fit` (e.g. RUN/checkpoints/last.ckpt)")
     parser.add_argument("--out", type=Path, required=True, help="directory for weights.safetensors and config.json")
     parser.add_argument("--overwrite", action="store_true", help="replace an export already in --out")
@@ -57,7 +58,7 @@ def analyze_command(argv: list[str]) -> int:
     from model.analyze import analyze
 
     parser = argparse.ArgumentParser(
-        prog="hauwm pretrain analyze",
+        prog="hauwm pretrain analyze", allow_abbrev=False,
         description="Disagreement against the horizon k (with/without HCU) and imagined rollouts per head (fig. 5).",
     )
     parser.add_argument("--model", type=Path, action="append", required=True,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import difflib
 import logging
 import pydoc
 import sys
@@ -78,12 +79,41 @@ def last_checkpoint(trainer_config) -> Path:
 GROUPS = (("model",), ("data",), ("trainer",), ("model", "world_model"))
 
 
-def refuse_bad_configs(args: list[str]) -> None:
+def setting_names(parser) -> set[str]:
+    """Every setting a subcommand's parser takes, dotted (`model.world_model.deter`). A setting whose value may be a
+    mapping (`trainer.callbacks`, `trainer.logger`) is one name: what is under it is its value."""
+    names: set[str] = set()
+
+    def add(settings: dict, prefix: str) -> None:
+        for key, value in settings.items():
+            if isinstance(value, dict) and value:
+                add(value, f"{prefix}{key}.")
+            else:
+                names.add(prefix + key)
+
+    add(parser.get_defaults().as_dict(), "")
+    return names
+
+
+def unknown_setting(config: dict, names: set[str], prefix: str = "") -> str | None:
+    """The first key of a config file's mapping (dotted) that is no setting in `names`, or None."""
+    for key, value in config.items():
+        name = f"{prefix}{key}"
+        if name in names:
+            continue
+        if not (isinstance(value, dict) and any(known.startswith(name + ".") for known in names)):
+            return name
+        if unknown := unknown_setting(value, names, name + "."):
+            return unknown
+    return None
+
+
+def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
     """What the parser would take silently, or report without naming the --config file (it says "<unicode
-    string>", whichever file it was): a file that is not YAML (named with its line), a key set twice, a file with
-    no settings, a group with none (null: it reset that group's settings), model.k_max (the parser ignored it: it
-    is data.k_max's), and the sizes moved under model.world_model (an old-style flag or key named with its new
-    place)."""
+    string>", whichever file it was, or no file at all): a file that is not YAML (named with its line), a key set
+    twice, a file with no settings, a group with none (null: it reset that group's settings), model.k_max (the
+    parser ignored it: it is data.k_max's), the sizes moved under model.world_model (an old-style flag or key named
+    with its new place), and a key that is no setting in `names` (a misspelling, named with the setting meant)."""
     sizes = {field.name for field in dataclasses.fields(WorldModelConfig)}
     for index, arg in enumerate(args):
         flag, _, value = arg.partition("=")
@@ -118,6 +148,11 @@ def refuse_bad_configs(args: list[str]) -> None:
         if flat:
             raise ConfigError(f"{path}: model.{flat[0]} (like every size) now belongs under model.world_model, "
                               f"e.g. `model: {{world_model: {{{flat[0]}: {model[flat[0]]}}}}}` (model/config.py)")
+        if unknown := unknown_setting(config, names):
+            meant = difflib.get_close_matches(unknown, names, n=1)
+            raise ConfigError(f"config file {path}: {unknown} is no setting of `{command}`"
+                              + (f" (did you mean {meant[0]}?)" if meant else "")
+                              + f"; `{command} --help` lists them")
 
 
 def checkpoint_to_resume(config, subcommand: str) -> str | None:
@@ -256,6 +291,14 @@ class PretrainCLI(LightningCLI):
         self.notice = notice  # LightningCLI parses, builds and runs inside __init__
         super().__init__(*args, **kwargs)
 
+    def parse_arguments(self, parser, args: list[str]) -> None:
+        """The checks of `refuse_bad_configs` first, against the settings of the subcommand asked for."""
+        subcommand = args[0] if args and args[0] in self.subcommands() else None
+        if subcommand is not None:  # the parser says what the subcommands are otherwise
+            names = setting_names(self._subcommand_parsers[subcommand])  # LightningCLI's, one per subcommand
+            refuse_bad_configs(args, names, f"{parser.prog} {subcommand}")
+        super().parse_arguments(parser, args)
+
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("data.k_max", "model.k_max")  # one K_max for sampling and validation
         # the module runs its own two Adams, so LightningCLI adds no --optimizer / --lr_scheduler; the config.yaml an
@@ -327,7 +370,6 @@ def not_an_advert(record: logging.LogRecord) -> bool:
 def lightning_cli(args: list[str]) -> PretrainCLI:
     """Run a LightningCLI subcommand (fit, validate) over PretrainModule and the shard DataModule. Ctrl-C or SIGTERM
     during a fit raises FitInterrupted, once ResumeNotice has said where to resume from."""
-    refuse_bad_configs(args)
     # `hauwm` passes its own argv on purpose; Lightning would warn that sys.argv differs
     warnings.filterwarnings("ignore", message="LightningCLI's args parameter is intended")
     # checkpoints after the optimizer step are what resume needs; Lightning warns about it under manual optimisation
@@ -349,7 +391,7 @@ def lightning_cli(args: list[str]) -> PretrainCLI:
             args=args,
             save_config_kwargs={"overwrite": True},
             auto_configure_optimizers=False,  # the module's own two Adams (manual optimisation): no --optimizer flags
-            parser_kwargs={"prog": "hauwm pretrain",
+            parser_kwargs={"prog": "hauwm pretrain", "allow_abbrev": False,  # `--trainer.max_step` is no max_steps
                            "description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video shards."},
         )
     except SystemExit:

@@ -92,3 +92,21 @@ def test_memory_that_ran_out_is_one_line_naming_what_to_lower(monkeypatch, capsy
     stage.main = another_runtime_error  # keeps its traceback: not about memory
     with pytest.raises(RuntimeError, match="shape mismatch"):
         main(["pretrain", "fit"])
+
+
+@pytest.mark.parametrize(("args", "refused"), [
+    (["shards", "sample-data", "--out", "{tmp}/ssv2", "--clip", "3"], "unrecognized arguments: --clip 3"),
+    (["datasets", "merge", "a-v0", "--ou", "b-v0"], "the following arguments are required: --out"),
+    (["finetune", "--config", "{tmp}/none.yaml", "--step", "3"], "unrecognized arguments: --step 3"),
+    (["pretrain", "export", "{tmp}/last.ckpt", "--ou", "{tmp}/export"], "the following arguments are required: --out"),
+    (["pretrain", "fit", "--trainer.max_step", "3"], "unrecognized arguments: --trainer.max_step 3"),
+])
+def test_no_stage_takes_the_beginning_of_a_flag_for_the_flag(tmp_path, capsys, args, refused):
+    """argparse's default: `--clip 3` set --clips; a misspelling would set whichever flag it begins."""
+    try:
+        status = main([arg.replace("{tmp}", str(tmp_path)) for arg in args])
+    except SystemExit as exit:  # argparse's way out, where a stage does not catch it
+        status = exit.code
+    assert status == 2
+    assert refused in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing written

@@ -30,11 +30,12 @@ IMAGE_SIZE = 64
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hauwm datasets", description=__doc__,
+    p = argparse.ArgumentParser(allow_abbrev=False, prog="hauwm datasets", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = p.add_subparsers(dest="command", required=True)
 
-    c = commands.add_parser("collect", help="play episodes (or take a run's replay) and write them as a dataset")
+    c = commands.add_parser("collect", allow_abbrev=False,
+                            help="play episodes (or take a run's replay) and write them as a dataset")
     c.add_argument("--dataset-id", required=True, help="new Minari ID, (namespace/)name-vN, e.g. hauwm/drawer_close-expert-v0")
     c.add_argument("--task", help="e.g. metaworld_drawer_close (with --policy agent or --from-run: the run's task)")
     c.add_argument("--policy", choices=("expert", "random", "agent"),
@@ -57,18 +58,20 @@ def parser() -> argparse.ArgumentParser:
                    "smaller than the default raw frames, but lossy (docs/datasets.md)")
     c.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
 
-    m = commands.add_parser("merge", help="concatenate datasets into a new one (e.g. medium replay + expert)")
+    m = commands.add_parser("merge", allow_abbrev=False,
+                            help="concatenate datasets into a new one (e.g. medium replay + expert)")
     m.add_argument("sources", nargs="+", metavar="ID", help="datasets to merge, in this order")
     m.add_argument("--out", required=True, metavar="ID", help="the new dataset's ID")
     m.add_argument("--no-progress", action="store_true")
 
-    i = commands.add_parser("inspect", help="episodes, steps, returns, normalised return, success rate of a dataset")
+    i = commands.add_parser("inspect", allow_abbrev=False,
+                            help="episodes, steps, returns, normalised return, success rate of a dataset")
     i.add_argument("dataset_id", metavar="ID")
     i.add_argument("--task", help="for a dataset made elsewhere: its task, one of the paper's ten (its action size is "
                                   "checked; DMC and Meta-World returns are normalised with Table 4's references)")
     i.add_argument("--no-progress", action="store_true")
 
-    commands.add_parser("list", help="the datasets under $MINARI_DATASETS_PATH")
+    commands.add_parser("list", allow_abbrev=False, help="the datasets under $MINARI_DATASETS_PATH")
     return p
 
 

@@ -241,6 +241,12 @@ def test_an_unknown_flag_names_the_help_command_that_exists(capsys):
     assert "run: hauwm pretrain fit --help" in err and "usage: hauwm pretrain [options] fit" in err
 
 
+def test_the_config_yaml_a_fit_saved_is_taken_whole_as_a_config(tiny_run, capsys):
+    saved = tiny_run / "lightning_logs" / "version_0" / "config.yaml"  # its callbacks' init_args, its null keys
+    assert main(["fit", "--config", str(saved), "--print_config"]) == 0
+    assert yaml.safe_load(capsys.readouterr().out)["trainer"]["max_steps"] == RUN_STEPS
+
+
 def test_a_checkpoint_of_another_model_size_is_refused(built_shards, tiny_run, tmp_path, capsys):
     code = fit(built_shards, tmp_path, "--model.world_model.deter", "48", "--ckpt_path", str(tiny_run / "checkpoints" / "last.ckpt"))
     assert code == 2
@@ -616,6 +622,11 @@ def test_an_export_into_something_that_is_not_a_directory_of_files_is_refused(ti
     ("model:\n  lr: 0.001\n  lr: 0.5\n", "is not valid YAML: 'lr' is set twice: keep one at line 3"),  # 0.5 won
     ("# nothing yet\n", "holds no settings, not a mapping of settings"),  # "Unexpected config: "
     ("42\n", "holds 42, not a mapping of settings"),
+    # a misspelt key: the parser named the key after its whole usage text, not the file
+    ("trainer:\n  max_step: 4\n", "trainer.max_step is no setting of `hauwm pretrain fit` (did you mean "
+                                  "trainer.max_steps?); `hauwm pretrain fit --help` lists them"),
+    ("model:\n  world_model:\n    detr: 48\n", "model.world_model.detr is no setting of `hauwm pretrain fit` (did "
+                                              "you mean model.world_model.deter?)"),
     # non-finite values passed the range checks: weights went NaN, HCU was off, or every step was skipped
     ("model:\n  lambda_init: .nan\n", "model.lambda_init must be a finite number, got nan"),
     ("model:\n  hcu_target: .inf\n", "model.hcu_target must be a finite number, got inf"),
@@ -628,7 +639,8 @@ def test_a_config_file_that_would_train_other_settings_without_a_word_is_refused
     overlay.write_text(text)
     assert fit(built_shards, tmp_path, "--config", str(overlay)) == 2
     err = capsys.readouterr().err
-    assert message in err and "Traceback" not in err, err[-1500:]
+    assert message in err and "Traceback" not in err and "usage:" not in err, err[-1500:]
+    assert f"config file {overlay}" in err or "must be a finite number" in err
     assert not (tmp_path / "checkpoints").exists()
 
 
