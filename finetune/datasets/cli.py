@@ -229,11 +229,11 @@ def inspect(args: argparse.Namespace) -> None:
 def list_(args: argparse.Namespace) -> None:
     from finetune.datasets.minari_io import METADATA_KEY, dataset_path, scan_datasets, unfinished, unfinished_message
 
-    datasets, damaged = scan_datasets()
+    datasets, notes = scan_datasets()
     for dataset_id in [dataset_id for dataset_id, metadata in datasets.items() if unfinished(metadata)]:
         print(unfinished_message(dataset_id, datasets.pop(dataset_id).get("total_episodes", 0)), file=sys.stderr)
-    for why in damaged.values():
-        print(why, file=sys.stderr)
+    for note in notes.values():
+        print(note, file=sys.stderr)
     if not datasets:
         print(f"no datasets under {dataset_path()} (MINARI_DATASETS_PATH); make one with `hauwm datasets collect`")
         return

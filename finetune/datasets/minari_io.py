@@ -92,12 +92,12 @@ def check_dataset_id(dataset_id: str) -> None:
 
 def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     """Under $MINARI_DATASETS_PATH, where Minari's `list_local_datasets` looks (every directory holding `data/`,
-    below directories not hidden): (every readable dataset's ID -> its metadata; every other's ID -> a line saying
-    why it cannot be read and what to do). Done here: Minari 0.5's listing stops with a TypeError at a directory
-    not named `name-vN`."""
+    below directories not hidden): (every readable dataset's ID -> its metadata; an ID -> a line about its directory:
+    why it cannot be read and what to do, or that it is a copy of another dataset, which reads as itself). Done here:
+    Minari 0.5's listing stops with a TypeError at a directory not named `name-vN`."""
     from minari.dataset.minari_storage import MinariStorage
 
-    root, datasets, damaged = dataset_path(), {}, {}
+    root, datasets, notes = dataset_path(), {}, {}
 
     def visit(directory: Path) -> None:
         for child in sorted(directory.iterdir()):
@@ -111,17 +111,15 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
                 check_dataset_id(dataset_id)
                 metadata = MinariStorage.read_raw_metadata(child / "data")
                 if metadata["dataset_id"] != dataset_id:  # a directory copied or moved: its metadata keeps its ID
-                    damaged[dataset_id] = (f"moved: {dataset_id} holds dataset {metadata['dataset_id']} (its "
-                                           "data/metadata.json names it so): move it back, or write it again under the "
-                                           "new ID")
-                    continue
+                    notes[dataset_id] = (f"note: {dataset_id} is a copy of dataset {metadata['dataset_id']} (its "
+                                         "data/metadata.json keeps that ID); it is read as the dataset of its directory")
                 datasets[dataset_id] = metadata
             except (DatasetError, OSError, ValueError, KeyError) as error:  # JSONDecodeError is a ValueError
-                damaged[dataset_id] = f"damaged: {dataset_id} ({error}): write it again, or delete {child}"
+                notes[dataset_id] = f"damaged: {dataset_id} ({error}): write it again, or delete {child}"
 
     if root.is_dir():
         visit(root)
-    return datasets, damaged
+    return datasets, notes
 
 
 def list_datasets() -> dict[str, dict[str, Any]]:
@@ -327,7 +325,10 @@ def load_episodes(dataset_id: str, task: str | None = None, action_dim: int | No
 
 def _to_replay_layout(dataset_id: str, index: int, raw: dict[str, Any], view: ImageView) -> dict[str, np.ndarray]:
     where = f"dataset {dataset_id!r}, episode {index}"
-    rewards = raw.get("rewards")
+    rewards, actions = raw.get("rewards"), raw.get("actions")
+    if actions is not None and len(actions) == 0:  # rewards and observations cut with them, as a rule
+        raise DatasetError(f"{where} holds no steps (no actions): an episode cut short or never written; write the "
+                           "dataset again without it")
     if rewards is None or len(rewards) == 0:
         raise DatasetError(f"{where} has no rewards; HAUWM's offline learners need the reward of every step")
     rewards = np.asarray(rewards, np.float32)
@@ -337,7 +338,7 @@ def _to_replay_layout(dataset_id: str, index: int, raw: dict[str, Any], view: Im
         raise DatasetError(f"{where}: rewards are shaped {list(rewards.shape)}; HAUWM needs one reward a step, [T]")
     if not np.all(np.isfinite(rewards)):
         raise DatasetError(f"{where}: rewards are missing (NaN or infinite); write the dataset with real rewards")
-    actions = np.asarray(raw["actions"], np.float32)
+    actions = np.asarray(actions, np.float32)
     if not np.all(np.isfinite(actions)):  # NaN would pass the bounds check below and train every weight into NaN
         raise DatasetError(f"{where}: actions hold NaN or infinite values; write the dataset with the actions taken")
     obs = view.frames(raw["observations"])

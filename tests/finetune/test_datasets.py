@@ -118,8 +118,12 @@ def test_cli_collects_expert_and_random_inspects_merges_and_lists(capsys):
         assert dataset_id in listing.out
     assert "test/random-v0" not in listing.out and "damaged: test/random-v0 (Expecting" in listing.err
     shutil.copytree(minari.storage.get_dataset_path("test/expert-v0"), minari.storage.get_dataset_path("test/copy-v0"))
-    assert main(["list"]) == 0  # a copy keeps the ID it was written under
-    assert "moved: test/copy-v0 holds dataset test/expert-v0" in capsys.readouterr().err
+    assert main(["list"]) == 0  # a copy keeps the ID it was written under, and is read as the one of its directory
+    listing = capsys.readouterr()
+    assert re.search(r"^test/copy-v0 .* expert .* 2 +180 ", listing.out, re.MULTILINE), listing.out  # "moved" before
+    assert "note: test/copy-v0 is a copy of dataset test/expert-v0" in listing.err
+    copied = load_episodes("test/copy-v0", task=TASK, action_dim=4, progress=False)
+    assert [e["reward"].sum() for e in copied] == [e["reward"].sum() for e in load_episodes("test/expert-v0")]
 
 
 def test_collect_from_a_runs_replay_and_with_its_agent(tmp_path, tiny_config, capsys):
@@ -334,6 +338,15 @@ def test_bad_actions_missing_rewards_and_empty_datasets_are_refused(random_episo
         del f["episode_0/rewards"]
     with pytest.raises(DatasetError, match="episode 0 could not be read.*rewards"):
         load_episodes("test/norewards-v0")
+
+    dataset = write_dataset("test/cut-v0", iter(random_episodes[:1]), {"task": TASK})
+    with h5py.File(dataset.storage.data_path / "main_data.hdf5", "a") as f:  # cut to its first observation
+        for name in ("observations", "actions", "rewards", "terminations", "truncations"):
+            kept = f[f"episode_0/{name}"][:1 if name == "observations" else 0]
+            del f[f"episode_0/{name}"]
+            f[f"episode_0/{name}"] = kept
+    with pytest.raises(DatasetError, match=r"episode 0 holds no steps \(no actions\)"):  # "no rewards"
+        load_episodes("test/cut-v0")
 
     with pytest.warns(UserWarning):
         minari.create_dataset_from_buffers("other/empty-v0", [], observation_space=frames,
