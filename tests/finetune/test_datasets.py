@@ -199,9 +199,9 @@ def test_a_signal_while_an_episode_is_written_waits_for_its_end(random_episodes,
         write(dataset, buffers)
 
     monkeypatch.setattr(minari.MinariDataset, "update_dataset_from_buffer", signalled_during_the_second)
-    # Ctrl-C's handler, as a `hauwm datasets` process has it: in full runs of the suite SIGINT was found ignored here
-    # (SIG_IGN, set by no Python call that a spy on signal.signal saw; origin not found), and the deferred signal
-    # then reached that
+    # Ctrl-C's handler, as a `hauwm datasets` process started from a terminal has it: a suite started in the
+    # background of a shell script (`make test &`, as CI and these sessions ran it) inherits SIGINT ignored (POSIX:
+    # `&` without job control), Python then installs no handler of its own, and the deferred signal reached SIG_IGN
     before, kept = signal.signal(signal.SIGINT, signal.default_int_handler), None
     try:
         with sigterm_as_interrupt():
