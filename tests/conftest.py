@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import signal
 import sys
 from pathlib import Path
 
@@ -21,6 +22,14 @@ import pytest
 from data_pipeline.build import BuildConfig, build
 from data_pipeline.sample_data import make_sample_data
 from data_pipeline.ssv2 import annotation_path
+
+
+def pytest_configure(config) -> None:
+    """Ctrl-C handled as in a terminal, however the suite was started: one started with `&` in a script (CI's, `make
+    test &`) inherits SIGINT ignored (POSIX, without job control), Python then installs no handler, and every process
+    a test starts would inherit it too; the tests of what Ctrl-C does found it ignored (and those of workers that
+    ignore it passed without testing anything)."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(autouse=True)

@@ -199,17 +199,12 @@ def test_a_signal_while_an_episode_is_written_waits_for_its_end(random_episodes,
         write(dataset, buffers)
 
     monkeypatch.setattr(minari.MinariDataset, "update_dataset_from_buffer", signalled_during_the_second)
-    # Ctrl-C's handler, as a `hauwm datasets` process started from a terminal has it: a suite started in the
-    # background of a shell script (`make test &`, as CI and these sessions ran it) inherits SIGINT ignored (POSIX:
-    # `&` without job control), Python then installs no handler of its own, and the deferred signal reached SIG_IGN
-    before, kept = signal.signal(signal.SIGINT, signal.default_int_handler), None
+    kept = None
     try:
         with sigterm_as_interrupt():
             write_dataset("test/kept-v0", iter(random_episodes[:3]), {"task": TASK}, keep_on_interrupt=True)
     except KeptOnInterrupt as stopped:
         kept = stopped.dataset
-    finally:
-        signal.signal(signal.SIGINT, before)
     assert kept is not None, f"the write was not stopped: writes {writes}, the signal met {handlers}, " \
                              f"{signal.Signals(signum).name} is handled by {signal.getsignal(signum)}"
     assert kept.total_episodes == 2 and writes == [0, 1]
