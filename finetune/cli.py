@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     subcommand = argv[0] if argv and argv[0] in SUBCOMMANDS else None
     args = parser(subcommand).parse_args(argv[1:] if subcommand else argv)
     paradigm = SUBCOMMANDS[subcommand][0] if subcommand else "online"
-    stopped, status = "", 0
+    stopped, status, cfg = "", 0, None
     try:
         overrides = dict(parse_override(text) for text in args.set)
         if "paradigm" in overrides:
@@ -161,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
         stopped, status = "interrupted", 130
     except Terminated as where:  # SIGTERM: the run wrote its checkpoint of this moment (finetune/termination.py)
         stopped, status = f"terminated (SIGTERM) at {where}", 143
+    if stopped and cfg is None:  # while the settings were read: nothing had started
+        print(f"{parser(subcommand).prog}: {stopped}, before the run started", file=sys.stderr)
+        return status
     if stopped:
         checkpoint = Path(cfg.logdir) / CHECKPOINT
         written = time.strftime("%H:%M:%S", time.localtime(checkpoint.stat().st_mtime)) if checkpoint.is_file() else ""

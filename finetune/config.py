@@ -20,7 +20,7 @@ from pathlib import Path
 import yaml
 
 from model.compiling import COMPILE_SETTINGS
-from model.config import ConfigError, UniqueKeyLoader, not_yaml
+from model.config import ConfigError, read_config_file
 
 PARADIGMS = ("online", "offline", "imitation")
 PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
@@ -66,7 +66,8 @@ class FinetuneConfig:
     logdir: str = "runs/finetune"
     device: str = "auto"  # "auto" (cuda when available), "cpu" or "cuda"
     threads: int = 0  # torch CPU threads, 0 = torch's default
-    # speed (docs/finetuning.md, "Speed"); none of these changes what is learned beyond rounding
+    # speed (docs/finetuning.md, "Speed"); a resume may change them: they change what is learned only by rounding, or
+    # by drawing other random numbers (num_envs: other env seeds; compile and device: other random streams)
     compile: str = "auto"  # torch.compile of update and acting: auto, off, default, reduce-overhead (compiling.py)
     conv_bf16: bool = False  # bf16 autocast in the convolutional encoder and decoder
     num_envs: int = 1  # training envs; more than 1 steps them in worker processes while the learner trains
@@ -91,7 +92,8 @@ class FinetuneConfig:
     stoch: int | None = None  # None: the export's size (30 for the scratch baseline)
     hidden: int = 200
     model_heads: int = 1  # prior heads of the new stream (offline RL's ensemble, LOMPO: 7); 1 = the paper's online agent
-    imagine_heads: str = "random"  # with model_heads > 1, imagination draws s̃ from a "random" head per step (LOMPO) or the "mean"
+    imagine_heads: str = "random"  # with model_heads > 1, imagination draws s̃ from a "random" head per step and
+    #                                trajectory (LOMPO: per step for the whole batch) or from the heads' "mean"
     units: int = 400  # reward head, actor and critic: 2 hidden layers × 400 ELU
     noise_std: float = 0.01  # Gaussian noise on the frozen stream's k = 1 temporal embedding
     k1_clip_length: float | None = None  # T of the relative k = 1 embedding; None: the export's median clip length
@@ -174,14 +176,7 @@ def load_config(path: str | Path | None, overrides: dict[str, object] | None = N
         if not path.is_file():
             what = "is a directory, not a YAML file" if path.is_dir() else "not found"
             raise ConfigError(f"config file {path} {what} ({WHERE_CONFIGS_ARE})")
-        try:
-            values = yaml.load(path.read_text(), UniqueKeyLoader)
-        except (yaml.YAMLError, UnicodeDecodeError) as err:  # a binary file (a checkpoint) is no text
-            raise not_yaml(path, err) from None
-        if values is None:  # an empty file (or comments only), more likely a slip than a wish for every default
-            raise ConfigError(f"config file {path} holds no settings: a config names at least its task ({WHERE_CONFIGS_ARE})")
-        if not isinstance(values, dict):
-            raise ConfigError(f"config file {path} must hold a mapping of settings, found {type(values).__name__}")
+        values = read_config_file(path, f"a config names at least its task: {WHERE_CONFIGS_ARE}")
     fields = {f.name: f for f in dataclasses.fields(FinetuneConfig)}
     for source, settings in ((f"config file {path}", values), ("the overrides (--set)", overrides or {})):
         if unknown := sorted(set(settings) - set(fields)):

@@ -97,7 +97,8 @@ def make_replay(cfg: FinetuneConfig, directory: Path, rng: np.random.Generator, 
     for episode in load_dataset(cfg.demos, cfg, action_dim, "--demos"):
         demos.add(episode)
     if not demos.ready(cfg.seq_len):
-        raise FinetuneError(f"--demos {cfg.demos}: no demonstration holds seq_len = {cfg.seq_len} steps; lower seq_len")
+        raise FinetuneError(f"--demos {cfg.demos}: no demonstration holds seq_len = {cfg.seq_len} "
+                            f"frames (one of {cfg.seq_len - 1} steps or more); lower seq_len")
     return MixedReplay(Replay(directory, cfg.replay_capacity, rng), demos, demos_per_batch(cfg))
 
 

@@ -15,6 +15,7 @@ evaluation episodes).
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -52,29 +53,30 @@ def train_offline(cfg: FinetuneConfig, pretrained: str | Path | None = None, pro
     """Run (or resume) offline RL in cfg.logdir until cfg.steps updates; returns the last evaluation."""
     if cfg.paradigm != "offline":
         raise FinetuneError(f"train_offline needs paradigm 'offline', the config has {cfg.paradigm!r}")
-    with exclusive(Path(cfg.logdir)):
-        return run_offline(cfg, pretrained, progress)
+    with exclusive(Path(cfg.logdir)), contextlib.closing(task_env(cfg, cfg.seed + 10_000)) as eval_env:
+        return run_offline(cfg, pretrained, progress, eval_env)
 
 
-def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool) -> dict[str, float]:
-    eval_env = task_env(cfg, cfg.seed + 10_000)
+def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, eval_env) -> dict[str, float]:
+    """The loop, in a run directory this process holds the lock of; `eval_env` is the task's env for evaluation."""
     action_dim = eval_env.action_space.shape[0]
     rng = np.random.default_rng(cfg.seed)
     replay = Replay(None, cfg.replay_capacity, rng)
     for episode in load_dataset(cfg.dataset, cfg, action_dim, "--dataset"):
         replay.add(episode)
     if not replay.ready(cfg.seq_len):
-        raise FinetuneError(f"--dataset {cfg.dataset}: no episode holds seq_len = {cfg.seq_len} steps; lower seq_len")
+        raise FinetuneError(f"--dataset {cfg.dataset}: no episode holds seq_len = {cfg.seq_len} frames "
+                            f"(one of {cfg.seq_len - 1} steps or more); lower seq_len")
     counters = {"updates": 0, "next_eval": cfg.eval_every, "next_checkpoint": cfg.checkpoint_every,
                 "next_log": cfg.log_every}
     agent, fingerprint, counters = start_run(cfg, pretrained, OfflineAgent, action_dim, counters, rng)
     checkpoint = Path(cfg.logdir) / CHECKPOINT
-    logger = Logger(Path(cfg.logdir), step_name="update", start=int(counters["updates"]))
     last_eval: dict[str, float] = {}
     bar = tqdm(total=cfg.steps, initial=counters["updates"], unit=" update", desc=f"offline {cfg.task}",
                disable=not progress, dynamic_ncols=True)
     window = LogWindow(counters["updates"])
-    with terminable() as stop:
+    with terminable() as stop, \
+            contextlib.closing(Logger(Path(cfg.logdir), step_name="update", start=int(counters["updates"]))) as logger:
         while counters["updates"] < cfg.steps:
             window.metrics.append(agent.update(replay.sample(cfg.batch_size, cfg.seq_len)))
             counters["updates"] += 1
@@ -94,5 +96,4 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
                 if stop.requested:  # SIGTERM: stopped with the checkpoint of this update (finetune/termination.py)
                     raise Terminated(f"update {updates}")
     bar.close()
-    logger.close()
     return last_eval

@@ -133,7 +133,8 @@ class Replay:
         """`batch_size` windows of `length` entries, each window start uniform over all valid starts."""
         starts_per_episode = np.array([max(len(ep["reward"]) - length + 1, 0) for ep in self.episodes])
         if starts_per_episode.sum() == 0:
-            raise ValueError(f"no episode in the replay holds {length} steps: lower seq_len or raise time_limit")
+            raise ValueError(f"no episode in the replay holds {length} frames ({length - 1} steps): lower seq_len or "
+                             "raise time_limit")
         picks = self.rng.choice(starts_per_episode.sum(), size=batch_size)
         offsets = np.cumsum(starts_per_episode) - starts_per_episode
         batch = {key: [] for key in KEYS}

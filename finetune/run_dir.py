@@ -9,8 +9,9 @@ the replay's episodes; a diverged agent (a weight not finite) is not written (Di
 the last good checkpoint. `best.pt` is the same, written by keep_best at each
 evaluation with the highest mean return so far (its counters keep best_return and best_at).
 
-Starting a run in a directory that holds a checkpoint resumes it (`resume`). Reading any checkpoint
-(read_state) needs the same export (and dataset) and the settings that shape the agent; a resume may change only the
+Starting a run in a directory that holds a checkpoint resumes it (`resume`). Reading a checkpoint (read_state)
+needs the same export and the settings that shape the agent, and resuming one the same dataset too (playing its
+agent, `load_trained`, does not read the dataset); a resume may change only the
 RESUMABLE settings (budget, evaluation, logging and checkpoint cadence, how the run computes). A setting a
 checkpoint predates counts with the value runs had before it (settings_before_they_existed). A directory with
 a config.yaml but no checkpoint (a run stopped before its first) is refused if its settings differ. One
@@ -108,7 +109,7 @@ def run_fingerprint(cfg: FinetuneConfig, pretrained: str | Path | None) -> Finge
 def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dict[str, float],
                     fingerprint: Fingerprint, rng: np.random.Generator | None = None) -> None:
     """Write the agent's trainable weights, its optimisers, torch's random state(s), `counters`, cfg and the run's
-    fingerprint to `path` (a .tmp file, then renamed: an interrupted write keeps the last checkpoint). `rng`: the
+    fingerprint to `path` (written whole: hauwm.atomic, so an interrupted write keeps the last checkpoint). `rng`: the
     replay's sampler, saved so that a resumed run draws the batches an unbroken run would."""
     weights = agent.trainable_state_dict()
     if diverged := non_finite(weights):
@@ -160,6 +161,9 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: Fingerprint,
         state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)  # best.pt at start: counters only
     except Exception as err:
         raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): {remedy}") from None
+    if not (isinstance(state, dict) and {"agent", "config", "counters", "export_sha256"} <= state.keys()):
+        what = f"keys {', '.join(sorted(map(str, state))[:4])}" if isinstance(state, dict) else type(state).__name__
+        raise FinetuneError(f"{path} is not a checkpoint of `hauwm finetune` (it holds {what}): {remedy}")
     shaping = ("task", "agent", "action_repeat", "deter", "stoch", "hidden", "units", "layer_norm",
                *settings_before_they_existed(cfg.paradigm))
     if differing := differing_settings(cfg, state["config"], shaping):
@@ -178,7 +182,8 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: Fingerprint,
 
 
 # what a resume may change: the budget, the evaluation, logging and checkpoint cadence, and how the run computes
-# (none of these changes what is learned, beyond rounding); any other setting stays as the run began
+# (these change what is learned only by rounding, or by drawing other random numbers: num_envs, compile, device); any
+# other setting stays as the run began
 RESUMABLE = ("steps", "logdir", "eval_every", "eval_episodes", "log_every", "checkpoint_every", "device", "threads",
              "compile", "conv_bf16", "num_envs", "pin_envs")
 

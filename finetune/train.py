@@ -13,6 +13,7 @@ resumes (what a checkpoint holds and the rules of a resume: finetune/run_dir.py)
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
@@ -66,6 +67,7 @@ def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | N
                 agent_class: type[Agent] = Agent) -> Agent:
     """The agent (`agent_class`: Agent for online RL, or offline RL's and imitation's subclasses) on `device`."""
     from finetune.pretrained import k1_embedding, load_pretrained
+    from finetune.world_model import ExportSizeError
 
     if cfg.agent == "scratch":
         agent = agent_class(cfg, action_dim).to(device)
@@ -76,7 +78,7 @@ def build_agent(cfg: FinetuneConfig, action_dim: int, pretrained: str | Path | N
         frozen = load_pretrained(pretrained)
         try:
             agent = agent_class(cfg, action_dim, frozen, k1_embedding(frozen, cfg.k1_clip_length)).to(device)
-        except ValueError as error:  # sizes of the config that do not fit the export
+        except ExportSizeError as error:
             raise FinetuneError(f"--pretrained {pretrained}: {error}") from None
     agent.set_compile(compile_mode(cfg.compile, device))
     return agent
@@ -118,7 +120,7 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
     The world model's posterior samples draw from torch's RNG forked and seeded with `seed` (0 without one): an
     evaluation never moves the training's random stream (how often a run evaluates leaves what it learns as it
     is), and one agent evaluated twice with one env seed gives the same figures."""
-    from finetune.envs.references import normalised_return
+    from finetune.envs.references import REFERENCE_RETURNS, normalised_return
 
     policy = AgentPolicy(agent, explore=False)
     returns, successes = [], []
@@ -131,10 +133,8 @@ def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = Non
             if "success" in episode:  # the suites with a success test (Meta-World, RoboDesk) report one
                 successes.append(bool(episode["success"].any()))
     result = {"return": float(np.mean(returns)), "return_std": float(np.std(returns))}
-    try:
+    if task in REFERENCE_RETURNS:  # tasks outside the paper's Table 4 (e.g. the demo's cartpole) have none
         result["normalised_return"] = float(normalised_return(task, result["return"]))
-    except KeyError:  # tasks outside the paper's Table 4 (e.g. the demo's cartpole) have no references
-        pass
     if successes:
         result["success_rate"] = float(np.mean(successes))
     return result
@@ -257,11 +257,11 @@ def train_due(cfg: FinetuneConfig, agent: Agent, replay: Replay, counters: dict[
 
 def task_env(cfg: FinetuneConfig, seed: int):
     """cfg.task's environment at cfg's settings (finetune.envs.make_env); an unknown task is a FinetuneError."""
-    from finetune.envs import make_env
+    from finetune.envs import EnvSettingError, make_env
 
     try:
         return make_env(cfg.task, seed=seed, **cfg.env_settings)
-    except ValueError as error:  # an unknown task name
+    except EnvSettingError as error:  # an unknown task, a time limit beyond the suite's, a MUJOCO_GL that cannot render
         raise FinetuneError(f"task {cfg.task!r}: {error}") from None
 
 
@@ -326,12 +326,12 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
         seeds = [cfg.seed + ENV_SEED_STRIDE * i for i in range(cfg.num_envs)]
     else:
         seeds = [episode_seed(cfg.seed, i, counters["episodes"]) for i in range(cfg.num_envs)]
-    eval_env = task_env(cfg, cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"]))
     if not replay.load(int(counters["episodes"]), action_dim) and counters["episodes"]:
         print(f"note: {logdir / 'replay'} holds none of the {int(counters['episodes'])} episodes this run stored (moved "
               "or deleted?): it trains on the episodes it collects from here", file=sys.stderr)
-    logger = Logger(logdir, start=int(counters["env_step"]))
-    with terminable() as stop:
+    eval_seed = cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"])
+    with terminable() as stop, contextlib.closing(task_env(cfg, eval_seed)) as eval_env, \
+            contextlib.closing(Logger(logdir, start=int(counters["env_step"]))) as logger:
         try:
             envs = make_vector_env(cfg.task, seeds, cfg.pin_envs, lambda: stop.requested, **cfg.env_settings)
         except EnvWorkerError as error:
@@ -428,5 +428,4 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
             if stop.requested:
                 raise Terminated(f"env step {step}")
     bar.close()
-    logger.close()
     return last_eval

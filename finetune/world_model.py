@@ -60,6 +60,10 @@ from model.networks import Decoder, Encoder, preprocess
 from model.rssm import EnsembleRSSM, RSSMState
 
 
+class ExportSizeError(ValueError):
+    """The config's sizes do not fit the frozen export the agent is built on."""
+
+
 class Rollout(NamedTuple):
     """What imagination visited, handed to a reward function of it (H steps from N start states)."""
 
@@ -131,7 +135,7 @@ class DualStreamWorldModel(nn.Module):
         if frozen is None:
             return Decoder(self.rssm.feature_dim, width=cfg.encoder_width)
         if frozen.decoder.feat_dim != self.rssm.feature_dim:
-            raise ValueError(
+            raise ExportSizeError(
                 f"the new stream's feature size deter+stoch = {self.rssm.feature_dim} must equal the export's "
                 f"decoder input {frozen.decoder.feat_dim} so the decoder can start from the pre-trained one (APV); "
                 f"leave deter/stoch unset in the config (they default to the export's sizes)")

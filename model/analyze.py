@@ -135,6 +135,9 @@ def analyze(
     models: list[Path], shards: Path, out: Path, split: str = "validation", batches: int = 8, batch_size: int = 8,
     seq_len: int = 12, k_max: int | None = None, heads: int = 4, seed: int = 0,
 ) -> list[Path]:
+    """Evaluate each export in `models` on the same `batches` held-out batches of `shards`' `split` (sequences of
+    `seq_len` frames at gaps 1..`k_max`: the export's K_max unless given), decode `heads` heads' rollouts, and
+    write the plots and figures.json into `out`; -> the files written."""
     loaded = [load_frozen(path) for path in models]
     trained = {model.export_config.get("provenance", {}).get("k_max") for model in loaded}
     k_max = k_max or loaded[0].export_config.get("provenance", {}).get("k_max") or 5

@@ -9,8 +9,8 @@ Every setting that defines the architecture (and so the shapes of the exported w
 - the export writes it under "world_model" in config.json (schema_version 2; version 1 held the keys flat),
   and fine-tuning rebuilds the frozen model from it.
 
-`ConfigError` is every stage's error for a bad setting (`not_yaml`: for a config file YAML cannot read;
-`UniqueKeyLoader` reads config files, refusing a key set twice).
+`ConfigError` is every stage's error for a bad setting; `read_config_file` reads every stage's config files (with
+`UniqueKeyLoader`, which refuses a key set twice).
 """
 
 from __future__ import annotations
@@ -30,12 +30,22 @@ class ConfigError(ValueError):
     """A setting or combination of settings that cannot train; the message names the flag and the fix."""
 
 
-def not_yaml(path: Path, err: yaml.YAMLError | UnicodeDecodeError) -> ConfigError:
-    """A config file that YAML cannot read (or that is not UTF-8 text), named with the line and column where it went
-    wrong."""
-    mark = getattr(err, "problem_mark", None)
-    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-    return ConfigError(f"config file {path} is not valid YAML: {getattr(err, 'problem', None) or err}{where}")
+def read_config_file(path: Path, example: str) -> dict:
+    """The settings a YAML config file holds, read with UniqueKeyLoader. A file that is not YAML (or not UTF-8 text: a
+    checkpoint) is a ConfigError naming the line and column where it went wrong; one with no settings (empty, or
+    comments only: more likely a slip than a wish for every default) or not a mapping names what it holds, and
+    `example`, the settings such a file holds."""
+    try:
+        settings = yaml.load(Path(path).read_text(), UniqueKeyLoader)
+    except (yaml.YAMLError, UnicodeDecodeError) as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"config file {path} is not valid YAML: {getattr(err, 'problem', None) or err}{where}") \
+            from None
+    if not isinstance(settings, dict):
+        raise ConfigError(f"config file {path} holds {'no settings' if settings is None else repr(settings)[:40]}, not "
+                          f"a mapping of settings ({example})")
+    return settings
 
 
 class UniqueKeyLoader(yaml.SafeLoader):

@@ -27,6 +27,7 @@ from safetensors.torch import load_file, save
 
 from hauwm.atomic import written_whole
 from model.config import ConfigError, WorldModelConfig, saved_settings
+from model.networks import IMAGE_SHAPE
 from model.world_model import WorldModel
 
 SCHEMA_VERSION = 2
@@ -80,7 +81,7 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
         "kind": KIND,
         "world_model": model.config.to_dict(),
         "feature_dim": model.rssm.feature_dim,
-        "image_shape": [3, 64, 64],
+        "image_shape": list(IMAGE_SHAPE),
         "normalisation": NORMALISATION,
         "provenance": provenance or {},
     }

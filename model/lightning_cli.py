@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.plugins.io import TorchCheckpointIO
@@ -31,7 +30,7 @@ from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from data_pipeline.datamodule import ShardDataModule
 from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
 from model.cli import refuse_other_frame_size
-from model.config import ConfigError, UniqueKeyLoader, WorldModelConfig, not_yaml
+from model.config import ConfigError, WorldModelConfig, read_config_file
 from model.export import checkpoint_world_model, read_checkpoint
 from model.interrupt import FitInterrupted, ResumeNotice
 from model.module import PretrainModule, refuse_other_size
@@ -124,13 +123,7 @@ def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
         path = Path(value or (args[index + 1] if index + 1 < len(args) else ""))
         if not path.is_file():
             continue  # the parser names it
-        try:
-            config = yaml.load(path.read_text(), UniqueKeyLoader)
-        except (yaml.YAMLError, UnicodeDecodeError) as err:
-            raise not_yaml(path, err) from None
-        if not isinstance(config, dict):
-            raise ConfigError(f"config file {path} holds {'no settings' if config is None else repr(config)[:40]}, not "
-                              "a mapping of settings (model:, data:, trainer:); give it some, or drop --config")
+        config = read_config_file(path, "model:, data:, trainer:; give it some, or drop --config")
         for group in GROUPS:
             parent = config
             for key in group[:-1]:

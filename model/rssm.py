@@ -151,10 +151,10 @@ class EnsembleRSSM(nn.Module):
         self,
         embeds: torch.Tensor,
         conds: torch.Tensor,
-        state: RSSMState | None = None,
         noise: torch.Tensor | None = None,
     ) -> Observation:
-        """Filter a sequence: embeds [B, L, E], conds [B, L, C] (cond of the gap before each frame) → Observation.
+        """Filter a sequence from the initial state: embeds [B, L, E], conds [B, L, C] (cond of the gap before each
+        frame) → Observation.
 
         noise [B, L, S]: the standard-normal draws of the posterior samples (`draw_noise`; when None, each step
         draws its own from the global RNG). Passing it in keeps the random draw out of a compiled region and
@@ -165,8 +165,7 @@ class EnsembleRSSM(nn.Module):
         zero-filled copies summed) — fewer, larger kernels on a launch-bound GPU (bench/bench_step_ops.py).
         """
         batch, length = embeds.shape[:2]
-        if state is None:
-            state = self.initial(batch, embeds.device)
+        state = self.initial(batch, embeds.device)
         noises = [None] * length if noise is None else noise.unbind(1)
         steps = []
         for cond, embed, step_noise in zip(conds.unbind(1), embeds.unbind(1), noises):

@@ -26,7 +26,6 @@ import numpy as np
 from tqdm import tqdm
 
 ENV_SETTINGS = ("fast_render", "time_limit", "action_repeat")  # what --set may change (make_env's arguments)
-IMAGE_SIZE = 64
 
 
 def parser() -> argparse.ArgumentParser:
@@ -106,9 +105,9 @@ def tracked(episodes: Iterable[dict[str, np.ndarray]], summary, total: int, desc
 
 
 def collect(args: argparse.Namespace) -> None:
-    from finetune.envs import make_env
+    from finetune.envs import EnvSettingError, make_env
 
-    from finetune.datasets.minari_io import DatasetError, dataset_path, write_dataset
+    from finetune.datasets.minari_io import IMAGE_SIZE, DatasetError, dataset_path, write_dataset
     from finetune.datasets.sources import (ExpertPolicy, RandomPolicy, load_agent_policy, policy_episodes,
                                            replay_episodes, run_config)
     from finetune.datasets.summary import Summary
@@ -157,7 +156,7 @@ def collect(args: argparse.Namespace) -> None:
         settings.update(overrides)
         try:
             env = make_env(args.task, seed=args.seed, image_size=IMAGE_SIZE, **settings)
-        except ValueError as error:  # unknown task, time limit beyond the suite's episodes
+        except EnvSettingError as error:  # unknown task, time limit beyond the suite's episodes
             raise DatasetError(f"--task {args.task}: {error}") from None
         metadata = {"task": args.task, "source": args.policy, "seed": args.seed, "action_repeat": env.action_repeat,
                     "time_limit": env.time_limit, "fast_render": bool(settings.get("fast_render", False)),

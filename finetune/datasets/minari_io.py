@@ -38,7 +38,7 @@ from tqdm import tqdm
 from finetune.termination import signals_deferred
 from hauwm.pid_lock import LockHeld, lock_holder, pid_lock
 
-IMAGE_SIZE = 64  # the frames the world model is trained on
+IMAGE_SIZE = 64  # the frames the world model is trained on (model.networks.IMAGE_SHAPE, not imported: it imports torch)
 IMAGE_KEYS = ("pixels", "image", "rgb", "observation", "obs")  # Dict observation entries tried in this order
 MAX_ASPECT = 1.25  # "square-ish": larger/smaller side at most this, else resizing would distort the scene
 METADATA_KEY = "hauwm"  # our settings in the dataset's metadata.json (task, source, env settings)

@@ -77,7 +77,11 @@ def load_agent_policy(rundir: str | Path, pretrained: str | Path | None, device:
     from finetune.train import resolve_device
 
     try:
-        _, agent, _ = load_trained(Path(rundir), pretrained, action_dim, resolve_device(device), checkpoint or CHECKPOINT)
+        torch_device = resolve_device(device)
+    except FinetuneError as error:  # --device's, not the run's
+        raise DatasetError(str(error)) from None
+    try:
+        _, agent, _ = load_trained(Path(rundir), pretrained, action_dim, torch_device, checkpoint or CHECKPOINT)
     except FinetuneError as error:
         raise DatasetError(f"--checkpoint {rundir}: {error}") from None
     return AgentPolicy(agent, explore)

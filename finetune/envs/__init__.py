@@ -48,7 +48,8 @@ elif "mujoco" in sys.modules and os.environ["MUJOCO_GL"] == "osmesa":  # OSMesa'
 else:
     import triton  # noqa: F401, E402
 
+from finetune.envs.base import EnvSettingError  # noqa: E402
 from finetune.envs.references import normalised_return  # noqa: E402
 from finetune.envs.registry import PAPER_TASKS, make_env  # noqa: E402
 
-__all__ = ["PAPER_TASKS", "make_env", "normalised_return"]
+__all__ = ["PAPER_TASKS", "EnvSettingError", "make_env", "normalised_return"]

@@ -25,6 +25,11 @@ import gymnasium
 import numpy as np
 
 
+class EnvSettingError(ValueError):
+    """A task or an env setting that cannot be made (an unknown task, a time limit beyond the suite's episodes, a
+    MUJOCO_GL that cannot render): bad input, which the commands report in one line naming it."""
+
+
 class PixelEnv(gymnasium.Env):
     """Base class: spaces, action rescaling, action repeat, time limit, channels-first frames."""
 
@@ -42,9 +47,9 @@ class PixelEnv(gymnasium.Env):
         time_limit: int,
     ) -> None:
         if action_repeat < 1:
-            raise ValueError(f"{name}: action_repeat must be >= 1, got {action_repeat}")
+            raise EnvSettingError(f"{name}: action_repeat must be >= 1, got {action_repeat}")
         if time_limit < 1:
-            raise ValueError(f"{name}: time_limit must be >= 1 agent step, got {time_limit}")
+            raise EnvSettingError(f"{name}: time_limit must be >= 1 agent step, got {time_limit}")
         self.name = name
         self.image_size = image_size
         self.action_repeat = action_repeat  # simulator steps per agent step

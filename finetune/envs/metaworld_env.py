@@ -20,7 +20,7 @@ import gymnasium
 import metaworld  # noqa: F401  (registers the 'Meta-World/*' gymnasium ids)
 import numpy as np
 
-from finetune.envs.base import PixelEnv
+from finetune.envs.base import EnvSettingError, PixelEnv
 from finetune.envs.rendering import disable_multisampling, turn_off_scene_flags
 
 EPISODE_SIM_STEPS = 500  # Meta-World's max_path_length; stepping past it is an error in Meta-World
@@ -49,7 +49,7 @@ class MetaWorldEnv(PixelEnv):
         fast_render: bool,
     ) -> None:
         if time_limit * action_repeat > EPISODE_SIM_STEPS:
-            raise ValueError(
+            raise EnvSettingError(
                 f"{name}: time_limit {time_limit} x action_repeat {action_repeat} exceeds Meta-World's "
                 f"{EPISODE_SIM_STEPS}-step episodes; " + (
                     f"use time_limit <= {EPISODE_SIM_STEPS // action_repeat}" if action_repeat <= EPISODE_SIM_STEPS

@@ -21,13 +21,15 @@ import sys
 import warnings
 from pathlib import Path
 
+from finetune.envs.base import EnvSettingError
+
 # draws one frame: a GL context alone "works" under glfw without a display, and rendering then fails
 RENDER_PROBE = ("import mujoco; model = mujoco.MjModel.from_xml_string('<mujoco/>'); renderer = mujoco.Renderer(model, 8, 8); "
                 "renderer.update_scene(mujoco.MjData(model)); renderer.render(); renderer.close()")
 CHECKED = "HAUWM_MUJOCO_GL_CHECKED"  # set once MUJOCO_GL is known to render; env worker processes inherit it
 
 
-class RenderingError(ValueError):
+class RenderingError(EnvSettingError):
     """MuJoCo cannot render with the MUJOCO_GL set; the message says what to set instead."""
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-from finetune.envs.base import PixelEnv
+from finetune.envs.base import EnvSettingError, PixelEnv
 from finetune.envs.opengl import check_rendering
 
 # The ten tasks of the paper's Table 4, in its order of suites.
@@ -47,7 +47,7 @@ _SUITE_MODULES = {
 def _suite(name: str) -> ModuleType:
     prefix = name.split("_", 1)[0]
     if prefix not in _SUITE_MODULES:
-        raise ValueError(
+        raise EnvSettingError(
             f"unknown environment {name!r}: names start with one of "
             f"{', '.join(p + '_' for p in _SUITE_MODULES)}. The paper's tasks: {', '.join(PAPER_TASKS)}"
         )
@@ -55,11 +55,11 @@ def _suite(name: str) -> ModuleType:
 
 
 def check_task(name: str) -> tuple[ModuleType, dict]:
-    """(its suite's module, the suite's tasks) for a task `name`; a ValueError listing the valid names otherwise."""
+    """(its suite's module, the suite's tasks) for a task `name`; an EnvSettingError listing the valid names otherwise."""
     suite = _suite(name)
     tasks = suite.tasks()
     if name not in tasks:
-        raise ValueError(
+        raise EnvSettingError(
             f"unknown environment {name!r}. Valid {name.split('_', 1)[0]} names: {', '.join(sorted(tasks))}"
         )
     return suite, tasks

@@ -26,7 +26,7 @@ from minari.data_collector import EpisodeBuffer
 from finetune.datasets import DatasetError, list_datasets, load_episodes, merge_datasets, write_dataset
 from finetune.datasets.minari_io import KeptOnInterrupt, hauwm_metadata, open_dataset
 from finetune.datasets.cli import main, sigterm_as_interrupt
-from finetune.datasets.sources import RandomPolicy
+from finetune.datasets.sources import RandomPolicy, load_agent_policy
 from finetune.envs import make_env
 from finetune.replay import KEYS, Replay
 from finetune.rollout import play_episode
@@ -348,6 +348,11 @@ def test_bad_actions_missing_rewards_and_empty_datasets_are_refused(random_episo
                                            action_space=gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32))
     with pytest.raises(DatasetError, match="holds no episodes"):
         load_episodes("other/empty-v0")
+
+
+def test_a_device_torch_does_not_know_is_named_as_the_device_not_the_run(tmp_path):
+    with pytest.raises(DatasetError, match=r"^device 'gpu' is not a device"):  # "--checkpoint RUNDIR: device …" before
+        load_agent_policy(tmp_path, None, "gpu", False, 4)
 
 
 def test_tasks_without_a_scripted_expert_say_what_to_use(capsys):

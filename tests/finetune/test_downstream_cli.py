@@ -101,3 +101,12 @@ def test_a_subcommands_help_says_what_it_does_and_what_steps_count(subcommand, u
     shown = capsys.readouterr().out
     assert f"hauwm finetune {subcommand} --config configs/" in shown and f"--steps counts {unit};" in shown
     assert "hauwm finetune evaluate" not in shown  # the other commands' examples stay in `hauwm finetune --help`
+
+
+def test_ctrl_c_while_the_settings_are_read_is_one_line(monkeypatch, capsys):
+    def interrupted(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("finetune.config.load_config", interrupted)
+    assert main(["--config", "configs/finetune/demo.yaml"]) == 130  # an UnboundLocalError (no cfg yet) before
+    assert capsys.readouterr().err.strip() == "hauwm finetune: interrupted, before the run started"

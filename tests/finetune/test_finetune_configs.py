@@ -124,7 +124,12 @@ def test_a_config_that_is_not_yaml_or_a_value_of_another_kind_is_refused_by_name
                                           "line 3, column 1"):
         load_config(broken)
     broken.write_text("# settings to come\n")
-    with pytest.raises(ConfigError, match=f"config file {broken} holds no settings: a config names at least its task"):
+    with pytest.raises(ConfigError, match=f"config file {broken} holds no settings, not a mapping of settings \\(a "
+                                          "config names at least its task"):
+        load_config(broken)
+    broken.write_text("- task: dmc_cheetah_run\n")
+    with pytest.raises(ConfigError, match=f"config file {broken} holds \\[{{'task': 'dmc_cheetah_run'}}\\], not a "
+                                          "mapping"):
         load_config(broken)
     with pytest.raises(ConfigError, match="setting steps must be a number, got '\\[1'"):
         load_config(None, dict([parse_override("steps=[1")]))  # not YAML: the text, judged by the setting

@@ -147,6 +147,17 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     assert main(run + ["--pretrained", str(export_dir)]) == 2
     err = capsys.readouterr().err
     assert f"{checkpoint} cannot be read (it is truncated or not a checkpoint" in err and "Traceback" not in err
+    torch.save({"state_dict": {}, "epoch": 3}, checkpoint)  # another program's file, which torch reads
+    assert main(run + ["--pretrained", str(export_dir)]) == 2
+    err = capsys.readouterr().err  # a KeyError's traceback before
+    assert f"{checkpoint} is not a checkpoint of `hauwm finetune` (it holds keys epoch, state_dict)" in err, err
+    assert "Traceback" not in err
+
+
+def test_sizes_that_do_not_fit_the_export_are_named_with_it(export_dir, tmp_path, capsys):
+    run = ["--config", "configs/finetune/demo.yaml", "--steps", "2", "--pretrained", str(export_dir)]
+    assert main(run + ["--logdir", str(tmp_path / "run"), "--set", "deter=8"]) == 2
+    assert (f"--pretrained {export_dir}: the new stream's feature size deter+stoch = " in capsys.readouterr().err)
 
 
 def test_a_logdir_of_something_else_is_refused_and_left_as_it_was(export_dir, tmp_path, capsys):
