@@ -38,11 +38,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import describe_machine  # noqa: E402
 from finetune.offline import OfflineAgent  # noqa: E402
-from finetune.replay import Replay  # noqa: E402
 from finetune.pretrained import PretrainedError  # noqa: E402
 from finetune.config import FinetuneError  # noqa: E402
 from finetune.run_dir import BEST, CHECKPOINT, load_trained, run_config  # noqa: E402
-from finetune.train import load_dataset, task_env  # noqa: E402
+from finetune.train import dataset_replay, task_env  # noqa: E402
 from finetune.world_model import Latent  # noqa: E402
 
 MODEL_METRICS = ("model_loss", "recon_nll", "reward_nll", "kl")
@@ -76,9 +75,7 @@ def imagined_reward_per_step(agent: OfflineAgent, first: Latent, horizon: int,
 def windows(dataset_id: str, cfg, action_dim: int, count: int, seed: int, flag: str) -> list[dict[str, torch.Tensor]]:
     """`count` replay batches (cfg.batch_size windows of cfg.seq_len steps) of a dataset, as tensors; `flag` names
     the dataset in errors."""
-    replay = Replay(None, cfg.replay_capacity, np.random.default_rng(seed))
-    for episode in load_dataset(dataset_id, cfg, action_dim, flag):
-        replay.add(episode)
+    replay = dataset_replay(dataset_id, cfg, action_dim, flag, np.random.default_rng(seed))
     return [{key: torch.as_tensor(value) for key, value in replay.sample(cfg.batch_size, cfg.seq_len).items()}
             for _ in range(count)]
 

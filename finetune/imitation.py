@@ -41,7 +41,7 @@ from finetune.config import FinetuneConfig, FinetuneError
 from finetune.discriminator import Discriminator
 from finetune.replay import Replay
 from finetune.run_dir import exclusive
-from finetune.train import LoopHooks, load_dataset, run
+from finetune.train import LoopHooks, dataset_replay, run
 from finetune.world_model import Latent, RewardFn, Rollout
 
 
@@ -93,12 +93,7 @@ def demos_per_batch(cfg: FinetuneConfig) -> int:
 
 
 def make_replay(cfg: FinetuneConfig, directory: Path, rng: np.random.Generator, action_dim: int) -> MixedReplay:
-    demos = Replay(None, cfg.replay_capacity, rng)
-    for episode in load_dataset(cfg.demos, cfg, action_dim, "--demos"):
-        demos.add(episode)
-    if not demos.ready(cfg.seq_len):
-        raise FinetuneError(f"--demos {cfg.demos}: no demonstration holds seq_len = {cfg.seq_len} "
-                            f"frames (one of {cfg.seq_len - 1} steps or more); lower seq_len")
+    demos = dataset_replay(cfg.demos, cfg, action_dim, "--demos", rng)
     return MixedReplay(Replay(directory, cfg.replay_capacity, rng), demos, demos_per_batch(cfg))
 
 

@@ -26,10 +26,9 @@ from finetune.agent import Agent
 from finetune.config import FinetuneConfig, FinetuneError
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
-from finetune.replay import Replay
 from finetune.run_dir import CHECKPOINT, exclusive, next_multiple, save_checkpoint
 from finetune.termination import Terminated, terminable
-from finetune.train import LogWindow, close_window, load_dataset, scheduled_evaluation, start_run, task_env
+from finetune.train import LogWindow, close_window, dataset_replay, scheduled_evaluation, start_run, task_env
 from finetune.world_model import Latent
 
 
@@ -61,12 +60,7 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
     """The loop, in a run directory this process holds the lock of; `eval_env` is the task's env for evaluation."""
     action_dim = eval_env.action_space.shape[0]
     rng = np.random.default_rng(cfg.seed)
-    replay = Replay(None, cfg.replay_capacity, rng)
-    for episode in load_dataset(cfg.dataset, cfg, action_dim, "--dataset"):
-        replay.add(episode)
-    if not replay.ready(cfg.seq_len):
-        raise FinetuneError(f"--dataset {cfg.dataset}: no episode holds seq_len = {cfg.seq_len} frames "
-                            f"(one of {cfg.seq_len - 1} steps or more); lower seq_len")
+    replay = dataset_replay(cfg.dataset, cfg, action_dim, "--dataset", rng)
     counters = {"updates": 0, "next_eval": cfg.eval_every, "next_checkpoint": cfg.checkpoint_every,
                 "next_log": cfg.log_every}
     agent, fingerprint, counters = start_run(cfg, pretrained, OfflineAgent, action_dim, counters, rng)

@@ -113,6 +113,19 @@ def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, f
         raise FinetuneError(f"{flag} {dataset_id}: {error}") from None
 
 
+def dataset_replay(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, flag: str,
+                   rng: np.random.Generator) -> Replay:
+    """A replay in memory holding a dataset's episodes (load_dataset), sampled with `rng`; a FinetuneError naming
+    `flag` if no episode is long enough for a window of seq_len frames."""
+    replay = Replay(None, cfg.replay_capacity, rng)
+    for episode in load_dataset(dataset_id, cfg, action_dim, flag):
+        replay.add(episode)
+    if not replay.ready(cfg.seq_len):
+        raise FinetuneError(f"{flag} {dataset_id}: no episode holds seq_len = {cfg.seq_len} frames (one of "
+                            f"{cfg.seq_len - 1} steps or more); lower seq_len")
+    return replay
+
+
 def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None,
              progress: bool = False) -> dict[str, float]:
     """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate.

@@ -230,7 +230,7 @@ def test_bad_imitation_settings_are_refused_with_clear_errors(export_dir, tiny_c
         imitation_config(tiny_config, tmp_path, 16, demo_fraction=1.0)
     with pytest.raises(FinetuneError, match="--demos ID is needed"):
         train_imitation(imitation_config(tiny_config, tmp_path / "a", 16, demos=None), export_dir, progress=False)
-    with pytest.raises(FinetuneError, match="no demonstration holds seq_len = 20"):
+    with pytest.raises(FinetuneError, match="--demos test/two-demos-v0: no episode holds seq_len = 20 frames"):
         train_imitation(imitation_config(tiny_config, tmp_path / "b", 16, seq_len=20, time_limit=30), export_dir,
                         progress=False)
     with pytest.raises(FinetuneError, match=r"seq_len = 12 is longer than an episode of metaworld_drawer_close \(9 "
