@@ -4,13 +4,17 @@ decord can hang on a bad file, and a hung C call cannot be interrupted from Pyth
 decoded (and its frames encoded) in one of N forked worker processes. A worker that overruns the
 timeout is killed and replaced; a worker that dies is replaced too. Results come back in job order
 whatever the number of workers or their timing, so the shards do not depend on `--workers`.
-Memory stays flat: at most `workers + lookahead` clips are in flight or waiting to be written.
+Memory stays flat: at most `workers + lookahead` clips are in flight or waiting to be written. Workers end with
+the build process, however it ends (`_end_with`).
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 import re
+import signal
+import sys
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -21,6 +25,7 @@ from pathlib import Path
 from .decode import ClipError, decode_clip
 from .shard_format import encode_frames
 
+PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when its parent ends
 _LOG_PREFIX = re.compile(r"\[\d\d:\d\d:\d\d\] \S+:\d+: ")  # decord's "[time] file.cc:line: " prefixes
 
 
@@ -56,7 +61,18 @@ def process_clip(path: Path, settings: DecodeSettings) -> ClipResult:
                       clip.source_width, clip.source_height, round(clip.fps, 3), clip.decoder)
 
 
-def _serve(connection: Connection, settings: DecodeSettings) -> None:
+def _end_with(build_process: int) -> None:
+    """Have Linux SIGKILL this worker when the build process ends, however it ends: killed with SIGKILL alone (by
+    the OOM killer, or a user), it cannot tell its workers, which then waited for their next clip for good, adopted
+    by init (and one that hangs in decord would never read anything again)."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != build_process:  # it ended before the signal was asked for
+        os._exit(0)
+
+
+def _serve(connection: Connection, settings: DecodeSettings, build_process: int) -> None:
+    _end_with(build_process)
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 2)  # FFmpeg's log lines about broken files; failures come back as ClipResults
     import cv2
@@ -73,7 +89,7 @@ def _serve(connection: Connection, settings: DecodeSettings) -> None:
 class _Worker:
     def __init__(self, settings: DecodeSettings):
         self.connection, child = get_context("fork").Pipe()
-        self.process = get_context("fork").Process(target=_serve, args=(child, settings), daemon=True)
+        self.process = get_context("fork").Process(target=_serve, args=(child, settings, os.getpid()), daemon=True)
         self.process.start()
         child.close()
         self.job: tuple[int, Path] | None = None

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import tarfile
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -175,6 +176,40 @@ def test_resume_after_sigkill_is_byte_identical(sample_ssv2, clean_annotations, 
         finished = subprocess.run(build_cli(*common, "--out", out, "--workers", "2"), capture_output=True, text=True)
         assert finished.returncode == 0, finished.stderr
         assert directory_bytes(out) == directory_bytes(reference)
+
+
+def processes_of_group(group: int) -> list[int]:
+    """The pids of the processes still in process group `group` (zombies left out), from /proc."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()  # after "pid (comm)": state, ppid, pgrp, ...
+            if int(fields[2]) == group and fields[0] != "Z":
+                pids.append(int(stat.parent.name))
+    return pids
+
+
+def test_the_decoders_of_a_build_killed_alone_end_with_it(sample_ssv2, clean_annotations, tmp_path):
+    """kill -9 of the build process alone (the OOM killer's way, or a user's): its decoder processes, adopted by
+    init, waited for their next clip for good."""
+    out = tmp_path / "killed"
+    process = subprocess.Popen(build_cli("--annotations", clean_annotations, "--videos", sample_ssv2 / "videos",
+                                         "--split", "train", "--clips-per-shard", "2", "--out", out, "--workers", "2"),
+                               start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while not (out.is_dir() and any(out.glob(".*.partial"))) and time.monotonic() < deadline:
+            time.sleep(0.002)  # until the decoders work
+        assert len(processes_of_group(process.pid)) == 3, "the build and its 2 decoders"
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait()
+        deadline = time.monotonic() + 10
+        while processes_of_group(process.pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not processes_of_group(process.pid)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
 
 
 def test_a_damaged_shard_is_rebuilt_on_resume(sample_ssv2, clean_annotations, tmp_path):
