@@ -98,6 +98,9 @@ def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, f
     try:
         dataset = open_dataset(dataset_id)
         collected = hauwm_metadata(dataset)
+        if collected.get("task", cfg.task) != cfg.task:  # before its settings, which another task's differ in anyway
+            raise FinetuneError(f"{flag} {dataset_id} was collected on {collected['task']}, not on this run's task "
+                                f"{cfg.task}: use a dataset of {cfg.task} (`hauwm datasets list` shows their tasks)")
         for key in ("action_repeat", "fast_render"):
             if key in collected and collected[key] != getattr(cfg, key):
                 raise FinetuneError(f"{flag} {dataset_id} was collected with {key}={collected[key]!r}, this run has "

@@ -297,12 +297,12 @@ def iterate_episodes(dataset_id: str, task: str | None = None, action_dim: int |
     says and `task` is given). Each episode's arrays are checked as it is read.
     """
     dataset = open_dataset(dataset_id)
-    view = image_view(dataset_id, dataset.observation_space)
-    check_actions(dataset_id, dataset.action_space, task, action_dim)
     collected_on = hauwm_metadata(dataset).get("task")
-    if task is not None and collected_on is not None and collected_on != task:
+    if task is not None and collected_on is not None and collected_on != task:  # before the spaces another task's fail
         raise DatasetError(f"dataset {dataset_id!r} was collected on {collected_on}, not {task}; "
                            "use a dataset of that task")
+    view = image_view(dataset_id, dataset.observation_space)
+    check_actions(dataset_id, dataset.action_space, task, action_dim)
     episodes = dataset.storage.get_episodes(dataset.episode_indices)
     bar = tqdm(total=dataset.total_episodes, unit=" episode", desc=f"reading {dataset_id}", disable=not progress,
                leave=False, dynamic_ncols=True)

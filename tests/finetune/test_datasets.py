@@ -350,6 +350,12 @@ def test_bad_actions_missing_rewards_and_empty_datasets_are_refused(random_episo
         load_episodes("other/empty-v0")
 
 
+def test_a_dataset_of_another_task_is_named_so_before_its_spaces_are_checked(random_episodes):
+    write_dataset("test/dial-v0", iter(random_episodes[:1]), {"task": "metaworld_dial_turn"})
+    with pytest.raises(DatasetError, match="was collected on metaworld_dial_turn, not dmc_cheetah_run"):
+        load_episodes("test/dial-v0", task="dmc_cheetah_run", action_dim=6)  # "actions have 4 dimensions" before
+
+
 def test_a_device_torch_does_not_know_is_named_as_the_device_not_the_run(tmp_path):
     with pytest.raises(DatasetError, match=r"^device 'gpu' is not a device"):  # "--checkpoint RUNDIR: device …" before
         load_agent_policy(tmp_path, None, "gpu", False, 4)

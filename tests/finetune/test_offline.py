@@ -166,6 +166,12 @@ def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_con
     with pytest.raises(FinetuneError, match="collected with action_repeat=2, this run has action_repeat=1"):
         train_offline(offline_config(tiny_config, tmp_path / "r", 2, dataset="test/repeat2-v0"), export_dir,
                       progress=False)
+    # another task's, whose settings differ too: the task is named, not a setting that would lead to the next error
+    minari_dataset("test/cheetah-v0", random_episodes(2, 12, 6), "dmc_cheetah_run", action_repeat=2)
+    with pytest.raises(FinetuneError, match="--dataset test/cheetah-v0 was collected on dmc_cheetah_run, not on this "
+                                            "run's task metaworld_drawer_close"):
+        train_offline(offline_config(tiny_config, tmp_path / "t", 2, dataset="test/cheetah-v0"), export_dir,
+                      progress=False)
     with pytest.raises(FinetuneError, match=r"no episode holds seq_len = 20 frames \(one of 19 steps or more\)"):
         train_offline(offline_config(tiny_config, tmp_path / "c", 2, seq_len=20), export_dir, progress=False)
     # a dataset larger than the replay: the run trained on its newest episodes only, without a word
