@@ -64,7 +64,7 @@ def test_ssv2_holds_table_3(ssv2_config):
         ("ablations/kmax-2.yaml", {"data.k_max": 2}),
         ("ablations/kmax-10.yaml", {"data.k_max": 10}),
         ("ablations/apv.yaml", {"model.world_model.ensemble": 1, "model.lambda_init": 0.0, "data.k_max": 1}),
-        ("bf16.yaml", {"trainer.precision": "bf16-mixed"}),
+        ("bf16.yaml", {"trainer.precision": "bf16-mixed", "trainer.default_root_dir": "runs/pretrain/ssv2-bf16"}),
     ],
 )
 def test_overlays_change_only_what_they_name(capsys, tmp_path, ssv2_config, overlay, expected):
