@@ -281,6 +281,20 @@ def task_env(cfg: FinetuneConfig, seed: int):
         raise FinetuneError(f"task {cfg.task!r}: {error}") from None
 
 
+def incomparable_returns_note(cfg: FinetuneConfig) -> str | None:
+    """A note where the run's normalised returns cannot be compared with the paper's: its episodes are cut shorter
+    than the suite's (`time_limit`), and Table 4's references are returns of whole episodes."""
+    from finetune.envs.references import REFERENCE_RETURNS
+    from finetune.envs.registry import episode_time_limit
+
+    full = episode_time_limit(cfg.task, cfg.action_repeat)
+    if cfg.task not in REFERENCE_RETURNS or cfg.time_limit is None or cfg.time_limit >= full:
+        return None
+    return (f"note: time_limit {cfg.time_limit} cuts {cfg.task}'s episodes short of the suite's {full} agent steps: "
+            "the normalised returns in eval.csv are not comparable to the paper's (Table 4's references are returns "
+            "of whole episodes)")
+
+
 def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: type[Agent], action_dim: int,
               counters: dict[str, float], rng: np.random.Generator) -> tuple[Agent, Fingerprint, dict[str, float]]:
     """The start every paradigm shares: torch's threads and seed, the agent, and the run directory's checkpoint
@@ -296,6 +310,8 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
     if cfg.num_envs > (cpus := os.cpu_count() or 1):  # 100,000 were accepted, and ran the machine out of memory
         print(f"note: num_envs {cfg.num_envs} is more than this machine's {cpus} CPUs: each env is a process of its own "
               "(its simulator and renderer, about 100 MB), and envs beyond the CPUs step no faster", file=sys.stderr)
+    if note := incomparable_returns_note(cfg):
+        print(note, file=sys.stderr)
     torch.manual_seed(cfg.seed)
     agent = build_agent(cfg, action_dim, pretrained, device, agent_class)
     fingerprint = run_fingerprint(cfg, pretrained)

@@ -16,7 +16,8 @@ from finetune.agent import Agent
 from finetune.envs.base import PixelEnv
 from finetune.run_dir import (BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, run_config,
                                save_checkpoint)
-from finetune.train import build_agent, evaluate, resolve_device, start_run, task_env, train
+from finetune.train import (build_agent, evaluate, incomparable_returns_note, resolve_device, start_run, task_env,
+                            train)
 from model.export import export_frozen
 from model.world_model import WorldModel
 
@@ -307,6 +308,15 @@ def test_evaluation_counts_an_episode_solved_at_any_step_and_normalises_its_retu
     assert result["success_rate"] == 1.0
     assert result["return"] == 8.0 and result["return_std"] == 0.0  # 4 agent steps × 2 simulator steps × 1
     assert result["normalised_return"] == pytest.approx((8.0 - 71.0) / (821.0 - 71.0))
+
+
+def test_normalised_returns_of_episodes_cut_short_are_said_to_be_incomparable(tiny_config):
+    note = incomparable_returns_note(tiny_config(task="metaworld_drawer_close", action_repeat=1, time_limit=100))
+    assert note.startswith("note: time_limit 100 cuts metaworld_drawer_close's episodes short of the suite's 500 agent "
+                           "steps: the normalised returns in eval.csv are not comparable to the paper's")
+    assert incomparable_returns_note(tiny_config(task="dmc_cheetah_run", action_repeat=2, time_limit=500)) is None
+    assert incomparable_returns_note(tiny_config(task="dmc_cheetah_run", action_repeat=4, time_limit=None)) is None
+    assert incomparable_returns_note(tiny_config(task="dmc_cartpole_swingup", time_limit=10)) is None  # no references
 
 
 def test_more_threads_or_envs_than_cpus_get_a_note(tmp_path, capsys):
