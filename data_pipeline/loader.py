@@ -1,8 +1,9 @@
 """The training loader: WebDataset shards → batches of variable-gap sequences (docs/architecture.md §2).
 
-Per epoch, the shard list is shuffled globally with `seed + epoch`, then split by node (rank, `webdataset.split_by_node`)
-and by DataLoader worker (every `workers`-th shard: `SequenceDataset.stream_urls`). Each worker cycles over its shards
-pass after pass and stops after exactly
+Per epoch, the shard list is shuffled globally with `seed + epoch`, then split by rank (as `webdataset.split_by_node`
+does, with the rank of the process that made the dataset: a worker may have no process group) and by DataLoader
+worker (every `workers`-th shard: `SequenceDataset.stream_urls`). Each worker cycles over its shards pass after pass
+and stops after exactly
 `batches_per_worker` batches, computed up front from the manifest's per-shard frame counts:
 
     batches_per_worker = ⌊ clips with at least L frames / (world_size · workers · batch_size) ⌋
@@ -211,6 +212,10 @@ def usable_shards(shards: ShardSet, seq_len: int, world_size: int, workers: int)
     LoaderError when there is none, or fewer than the world_size · workers streams need (one shard each)."""
     usable = {url: n for url, n in zip(shards.urls, shards.eligible(seq_len)) if n > 0}
     streams = world_size * workers
+    if not usable and not any(shards.frame_counts):  # every clip of the split failed to build, or it lists none
+        raise LoaderError(f"split {shards.split!r} holds no clips (`hauwm shards inspect` shows why its clips failed "
+                          "to build; `hauwm shards build --retry-failed` rebuilds those a missing or slow video "
+                          "kept out)")
     if not usable:
         longest = max((frames for counts in shards.frame_counts for frames in counts), default=0)
         raise LoaderError(f"split {shards.split!r} has no clip of at least seq_len={seq_len} frames (the longest "
@@ -237,10 +242,12 @@ class SequenceDataset(IterableDataset):
         if seq_len < 1 or k_max < 1 or batch_size < 1:
             raise LoaderError(f"seq_len, k_max and batch_size must be at least 1 "
                               f"(got {seq_len}, {k_max}, {batch_size})")
-        _, world_size, _, _ = pytorch_worker_info()
+        # this process's rank, kept for the DataLoader workers: one started by forkserver or spawn (Python 3.14's
+        # default on Linux) has no process group, and Lightning sets no RANK, so it would read as rank 0 of 1
+        self.rank, self.world_size, _, _ = pytorch_worker_info()
         self.num_workers, self.workers = num_workers, max(1, num_workers)  # DataLoader workers; streams per rank
-        self.streams = world_size * self.workers  # what a resume position means depends on it (ResumableDataLoader)
-        self.clips_in = usable_shards(shards, seq_len, world_size, self.workers)  # url -> clips of ≥ seq_len frames
+        self.streams = self.world_size * self.workers  # what a resume position means depends on it
+        self.clips_in = usable_shards(shards, seq_len, self.world_size, self.workers)  # url -> clips of ≥ seq_len frames
         self.urls = list(self.clips_in)
         clips = sum(self.clips_in.values())
         self.batches_per_worker = batches_per_worker or clips // (self.streams * batch_size)
@@ -284,13 +291,13 @@ class SequenceDataset(IterableDataset):
 
     def stream_urls(self, stream: int, epoch: int | None = None) -> list[str]:
         """The shards stream `stream` of this rank reads in `epoch` (default: this one): the list shuffled with
-        seed + epoch (the same order everywhere), split by node (webdataset's `split_by_node`), then every
-        `workers`-th shard from `stream` on (what `split_by_worker` does, for a stream index that need not be the
-        process's)."""
+        seed + epoch (the same order everywhere), every world_size-th from the rank on (webdataset's
+        `split_by_node`, with the rank of the process that made the dataset), then every `workers`-th shard from
+        `stream` on (what `split_by_worker` does, for a stream index that need not be the process's)."""
         urls = list(self.urls)
         if self.shuffle:
             random.Random(self.seed + (self.epoch if epoch is None else epoch)).shuffle(urls)
-        return list(wds.split_by_node(urls))[stream :: self.workers]
+        return urls[self.rank :: self.world_size][stream :: self.workers]
 
     def _sources(self, urls: list[str], worker: int) -> Iterator[dict]:
         """webdataset shard sources `{"url"}`, noting in shared memory which shard `worker` opens."""
@@ -328,20 +335,19 @@ class SequenceDataset(IterableDataset):
         batches come in the same order as in an uninterrupted run. An epoch holds W · batches_per_worker
         batches, so in the epochs after, worker p is asked right after the stream before its own again: it
         keeps playing stream (p + skip) mod W, from the epoch's first batch."""
-        rank, _, process_worker, _ = pytorch_worker_info()
+        _, _, process_worker, _ = pytorch_worker_info()
         first_epoch, skip = self.epoch, self.skip_batches
         stream = (process_worker + skip) % self.workers
         # batches this stream gave before the resume: of batches 0..skip−1, those i with i mod W == stream
         skipped = (skip - stream + self.workers - 1) // self.workers
         epochs = itertools.count(first_epoch) if self.continuous else [first_epoch]
         batches = (batch for epoch in epochs for batch in self._epoch_batches(
-            epoch, rank, stream, skipped if epoch == first_epoch else 0, process_worker))
+            epoch, stream, skipped if epoch == first_epoch else 0, process_worker))
         return self._naming_the_shard(batches, process_worker)
 
-    def _epoch_batches(self, epoch: int, rank: int, stream: int, skipped: int,
-                       worker: int) -> Iterator[dict | SlotBatch]:
+    def _epoch_batches(self, epoch: int, stream: int, skipped: int, worker: int) -> Iterator[dict | SlotBatch]:
         """Stream `stream`'s batches of `epoch`, after the first `skipped`, read by DataLoader worker `worker`."""
-        rng = np.random.default_rng([self.seed, epoch, rank, stream])
+        rng = np.random.default_rng([self.seed, epoch, self.rank, stream])
         urls = self.stream_urls(stream, epoch)
         remaining = islice(self._passes(urls, rng, worker), skipped * self.batch_size, None)
         groups = wds.batched(self.batch_size, collation_fn=None, partial=False)(remaining)

@@ -97,6 +97,12 @@ def test_the_median_clip_length_counts_the_clips_long_enough_to_train_on():
     assert shards.median_frames(31) == 40 and shards.median_frames(41) is None
 
 
+def test_a_split_whose_clips_all_failed_to_build_is_named_so_not_as_too_short():
+    nothing = ShardSet("validation", ["validation-000000.tar"], [{}])  # its 5 clips' videos were missing
+    with pytest.raises(LoaderError, match=r"split 'validation' holds no clips \(`hauwm shards inspect` shows why"):
+        SequenceDataset(nothing, batch_size=2, seq_len=8)  # "the longest has 0: lower seq_len" before
+
+
 def test_the_datamodule_records_the_median_length_of_the_clips_it_trains_on(built_shards):
     """train_clip_length (which the export records for fine-tuning's k = 1 embedding) leaves out the train clips
     shorter than seq_len, as training does."""
@@ -125,6 +131,18 @@ def test_two_ranks_by_two_workers_get_equal_batch_counts_over_uneven_shards(buil
     assert set(counts.values()) == {18 // (2 * 2 * 2)}, counts
     streams = list(seen.values())
     assert all(not (a & b) for i, a in enumerate(streams) for b in streams[i + 1:])  # each shard read by one stream
+
+
+def test_a_worker_reads_for_the_rank_of_the_process_that_made_its_dataset(built_shards, monkeypatch):
+    """A DataLoader worker started by forkserver or spawn (Python 3.14's default) has no process group, and
+    Lightning sets no RANK: asked there, every rank's workers read as rank 0 of 1, the same shards and draws."""
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=0)
+    on_the_rank = [batch["id"] for batch in dataset]
+    monkeypatch.delenv("RANK")
+    monkeypatch.delenv("WORLD_SIZE")  # as in such a worker
+    assert [batch["id"] for batch in dataset] == on_the_rank
 
 
 def test_each_epoch_deals_the_shards_to_the_streams_anew_and_all_of_them(built_shards):
