@@ -297,8 +297,6 @@ def validate(config: BuildConfig) -> None:
         if not annotation_path(config.annotations, name).is_file():
             raise BuildError(f"{annotation_path(config.annotations, name)}: file not found; --annotations must be "
                              "the directory holding the something-something-v2-*.json files")
-    if not config.videos.is_dir():
-        raise BuildError(f"--videos {config.videos}: not a directory (it should hold <id>.webm files)")
     if config.num_parts < 1:
         raise BuildError(f"--num-parts must be at least 1, got {config.num_parts}")
     if not 0 <= config.part < config.num_parts:
@@ -327,18 +325,20 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
     validate(config)
     plans = plan_shards(config)
     mine = [plan for i, plan in enumerate(plans) if i % config.num_parts == config.part]
-    ids = [record.id for plan in mine for record in plan.records]
-    if ids and not any((config.videos / f"{clip}.webm").is_file() for clip in ids):
-        raise BuildError(f"--videos {config.videos} holds none of this part's {len(ids)} clips (e.g. no "
-                         f"{ids[0]}.webm): point --videos at the directory of SSv2's <id>.webm files")
-    config.out.mkdir(parents=True, exist_ok=True)
     settings = settings_of(config)
     digest = settings_digest(settings)
-    check_settings(config.out, settings, digest, config.part)
     complete = {plan.name: stats for plan in mine if (stats := verified_stats(config.out, plan, digest)) is not None}
     kept = {name: stats for name, stats in complete.items() if not (config.retry_failed and retryable(stats["errors"]))}
     todo = [plan for plan in mine if plan.name not in kept]
     valid = [r for plan in todo for r in plan.records if not id_fault(r.id)]
+    # the videos are needed only for clips left to decode: shards copied from other machines assemble without them
+    if valid and not config.videos.is_dir():
+        raise BuildError(f"--videos {config.videos}: not a directory (it should hold <id>.webm files)")
+    if valid and not any((config.videos / f"{record.id}.webm").is_file() for record in valid):
+        raise BuildError(f"--videos {config.videos} holds none of the {len(valid)} clips this part has left to "
+                         f"build (e.g. no {valid[0].id}.webm): point --videos at the directory of SSv2's <id>.webm files")
+    config.out.mkdir(parents=True, exist_ok=True)
+    check_settings(config.out, settings, digest, config.part)
     log(f"shards: {len(plans)} in all, {len(mine)} in part {config.part}/{config.num_parts}, "
         f"{len(kept)} already complete, {len(todo)} to build ({len(valid)} clips, {config.workers} workers)")
     started = time.monotonic()

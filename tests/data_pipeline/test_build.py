@@ -262,7 +262,8 @@ def test_parts_built_on_machines_without_a_shared_disk_assemble_where_their_file
     gathered.mkdir()
     for path in [*tmp_path.glob("machine-*/*.tar"), *tmp_path.glob("machine-*/*.stats.json")]:  # docs/data_pipeline.md
         shutil.copy(path, gathered)
-    manifest, status = build(config(0, gathered), log=quiet)
+    # on a machine without the videos: nothing is left to decode (refused for --videos before)
+    manifest, status = build(dataclasses.replace(config(0, gathered), videos=tmp_path / "no-videos-here"), log=quiet)
     assert manifest is not None and status == 0
     assert directory_bytes(gathered) == directory_bytes(built_shards)
     other = config(0, tmp_path / "machine-1")
@@ -294,8 +295,9 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
     with pytest.raises(BuildError, match="--videos .*no-videos: not a directory"):
         build(config, log=quiet)
     config.videos = sample_ssv2 / "annotations"  # a directory, but not of the clips' videos
-    with pytest.raises(BuildError, match=r"--videos .*annotations holds none of this part's \d+ clips"):
+    with pytest.raises(BuildError, match=r"--videos .*annotations holds none of the \d+ clips this part has left "):
         build(config, log=quiet)
+    assert not config.out.exists()  # refused before anything was written
     config.videos = sample_ssv2 / "videos"
     for setting, value, message in (("max_error_rate", 1.5, "--max-error-rate .* 0..1, got 1.5"),
                                     ("timeout", 0.0, "--timeout .* must be positive and at most 86400 .*, got 0.0"),
