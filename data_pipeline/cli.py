@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from collections.abc import Callable
-from pathlib import Path
+
+from hauwm.arguments import path
 
 from .decode import RESIZE_MODES
-from .shard_format import ENCODINGS
+from .shard_format import ENCODINGS, MANIFEST_FILE
 from .ssv2 import SPLITS, AnnotationError
 
 
@@ -23,13 +25,6 @@ def at_least(least: int) -> Callable[[str], int]:
             raise argparse.ArgumentTypeError(f"must be a whole number >= {least}, got {text!r}")
         return value
     return whole_number
-
-
-def path(text: str) -> Path:
-    """An argparse type for paths: not empty (an unset shell variable would otherwise mean the current directory)."""
-    if not text.strip():
-        raise argparse.ArgumentTypeError("an empty path (an unset shell variable?): name a file or directory")
-    return Path(text)
 
 
 def _build(args: argparse.Namespace) -> int:
@@ -87,7 +82,23 @@ def _sample_data(args: argparse.Namespace) -> int:
         print(f"hauwm shards sample-data: {args.out} already holds a dataset ({', '.join(taken)}): "
               "pass another --out, or delete it first", file=sys.stderr)
         return 2
-    broken = make_sample_data(args.out, args.clips, with_broken=args.with_broken, seed=args.seed, workers=args.workers)
+    if (args.out / MANIFEST_FILE).exists():
+        print(f"hauwm shards sample-data: {args.out} is a shard directory ({MANIFEST_FILE}): pass another --out",
+              file=sys.stderr)
+        return 2
+    existed = {entry: entry.exists() for entry in (args.out, args.out / "annotations", args.out / "videos")}
+    try:
+        broken = make_sample_data(args.out, args.clips, with_broken=args.with_broken, seed=args.seed,
+                                  workers=args.workers)
+    except BaseException:  # Ctrl-C, a full disk: what it wrote goes, so that the same command can start again
+        for entry in (args.out / "annotations", args.out / "videos"):  # empty or absent before (checked above)
+            shutil.rmtree(entry, ignore_errors=True)
+            if existed[entry]:
+                entry.mkdir()
+        (args.out / "broken.json").unlink(missing_ok=True)
+        if not existed[args.out]:
+            shutil.rmtree(args.out, ignore_errors=True)
+        raise
     print(f"wrote {args.clips} clips" + (f" and {len(broken)} broken entries" if broken else "") +
           f" to {args.out} (annotations/ and videos/)")
     return 0

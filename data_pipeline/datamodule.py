@@ -23,7 +23,7 @@ from lightning.pytorch.utilities import rank_zero_info
 
 from .loader import (LoaderError, SequenceDataset, check_shard_url, check_worker_priority, make_dataloader,
                      shard_set)
-from .sampling import gap_range_note
+from .sampling import gap_range_note, gaps_beyond_clips
 from .shard_format import read_manifest
 
 MAX_TIMEOUT = 86_400.0  # --data.timeout: a day
@@ -116,6 +116,8 @@ class ShardDataModule(lightning.LightningDataModule):
         if stage in (None, "fit"):
             train_shards = shard_set(hp.shards, hp.train_split, hp.shard_url)
             self.train_clip_length = train_shards.median_frames(hp.seq_len)  # the export records it (PretrainModule)
+            if beyond := gaps_beyond_clips(train_shards.clip_lengths(), hp.seq_len, hp.k_max, "--data.k_max"):
+                raise LoaderError(f"{beyond} (the {hp.train_split} split's clips)")
             if note := gap_range_note(train_shards.clip_lengths(), hp.seq_len, hp.k_max,
                                       f"--data.k_max {hp.k_max} with --data.seq_len {hp.seq_len}"):
                 rank_zero_info(f"note: {note}")

@@ -1,6 +1,6 @@
 """`hauwm shards preview DIR --out preview.png`: a grid of sampled sequences, one clip per row,
 its L frames (sampled with gaps k ~ U{1..K_max}, as the loader does) along the row, each labelled
-with its frame index and gap; the row's caption (class index: caption) sits above it."""
+with its frame index and gap; the row's caption (clip id, [class index], label) sits above it."""
 
 from __future__ import annotations
 
@@ -11,11 +11,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from hauwm.atomic import written_whole
+
 from .sampling import gaps_of, sample_indices
 from .shard_format import MANIFEST_FILE, ShardDirError, decode_frames, frames_member, read_manifest, read_samples
 
 SCALE, LABEL_HEIGHT, CAPTION_HEIGHT = 2, 14, 16
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # what cv2.imwrite writes here
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # what cv2.imencode writes here
 
 
 def _clips(directory: Path, shards: list[dict]) -> Iterator[dict]:
@@ -35,6 +37,8 @@ def write_preview(directory: Path, out: Path, split: str | None = None, clips: i
     directory, out = Path(directory), Path(out)
     if out.suffix.lower() not in IMAGE_SUFFIXES:
         raise ShardDirError(f"--out {out}: name an image file ending in {', '.join(IMAGE_SUFFIXES)}")
+    if out.is_dir():
+        raise ShardDirError(f"--out {out} is a directory: name an image file, e.g. {out / 'preview.png'}")
     manifest = read_manifest(directory)
     split = split or next(iter(manifest["splits"]))
     if split not in manifest["splits"]:
@@ -67,6 +71,9 @@ def write_preview(directory: Path, out: Path, split: str | None = None, clips: i
             image = cv2.resize(frame, (side, side), interpolation=cv2.INTER_NEAREST)
             canvas[top + CAPTION_HEIGHT: top + CAPTION_HEIGHT + side, j * side:(j + 1) * side] = image
             _text(canvas, f"t={index}" + (f" k={gap}" if j else ""), j * side + 3, top + row_height - 3)
+    encoded, image = cv2.imencode(out.suffix, canvas[:, :, ::-1])
+    if not encoded:
+        raise ShardDirError(f"--out {out}: OpenCV cannot write {out.suffix} images; name a .png or .jpg file")
     out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), canvas[:, :, ::-1]):
-        raise ShardDirError(f"cannot write {out} (is its directory writable?)")
+    with written_whole(out) as partial:  # a full disk leaves an earlier preview there as it was
+        partial.write_bytes(image.tobytes())

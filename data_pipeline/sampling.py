@@ -88,6 +88,18 @@ def gap_shares(frame_counts: dict[int, int], length: int, k_max: int) -> np.ndar
     return total / max(total.sum(), 1e-300)
 
 
+def gaps_beyond_clips(frame_counts: dict[int, int], length: int, k_max: int, where: str) -> str | None:
+    """A line saying that no sequence of `length` frames of these clips can hold a gap as large as k_max (the
+    longest clip of F frames allows gaps up to F − length + 1), None where one can, or where no clip holds `length`
+    frames (the caller refuses that). Gaps above it are never drawn: k_max is a mistake there (and a huge one
+    made the gap tables and the per-k evaluation run for hours). `where` names the setting, e.g. "--data.k_max"."""
+    longest = max((frames for frames, n in frame_counts.items() if n and frames >= length), default=None)
+    if longest is None or k_max <= longest - length + 1:
+        return None
+    return (f"{where} {k_max} with sequences of {length} frames: the longest clip has {longest} frames, so no gap above "
+            f"{longest - length + 1} can be drawn; lower it to at most {longest - length + 1}")
+
+
 def gap_range_note(frame_counts: dict[int, int], length: int, k_max: int, where: str) -> str | None:
     """A line saying how far the gaps drawn from these clips fall short of U{1..K_max} (None when the longest gap
     keeps at least half its share, or where no clip holds `length` frames: the caller refuses that): `where` names

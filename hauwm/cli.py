@@ -42,13 +42,21 @@ SMALLER = {
 FULL = (errno.ENOSPC, errno.EDQUOT)  # a full disk, or the user's disk quota reached (common on clusters)
 
 
-def path_problem(err: OSError) -> str:
+# what running a stage's command again does, after a full disk stopped it
+AGAIN = {
+    "pretrain": " (a fit goes on from its last checkpoint with --ckpt_path last)",
+    "finetune": " (a run goes on from its last checkpoint)",
+    "shards": " (a build keeps the shards it finished)",
+}
+
+
+def path_problem(err: OSError, stage: str) -> str:
     """What went wrong with err.filename (None for a write to a file already open), and what to do, in one clause."""
     path = err.filename
     if err.errno in FULL:
         where = f" while writing {path}" if path else ""
         full = "no space left on the device" if err.errno == errno.ENOSPC else "the disk quota is reached"
-        return f"{full}{where}: free some space, then run the same command again (a run goes on from its last checkpoint)"
+        return f"{full}{where}: free some space, then run the same command again{AGAIN.get(stage, '')}"
     if err.errno in (errno.EEXIST, errno.ENOTDIR):  # mkdir of an output directory where a file is
         return f"{path} is a file, or lies under one, where a directory is needed: pass another path"
     return f"{path}: {err.strerror}: check the path and its permissions"
@@ -95,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             return memory_ran_out(stage, err)
         if err.filename is None and err.errno not in FULL:  # not about a path (a socket, a library's own failure)
             raise
-        print(f"hauwm {stage}: error: {path_problem(err)}", file=sys.stderr)
+        print(f"hauwm {stage}: error: {path_problem(err, stage)}", file=sys.stderr)
         return 2
     except (MemoryError, RuntimeError) as err:
         if not out_of_memory(err):

@@ -22,10 +22,13 @@ from matplotlib.figure import Figure  # no pyplot: no GUI backend, no global fig
 from tqdm import tqdm
 
 from data_pipeline.loader import SequenceDataset, shard_set
-from data_pipeline.sampling import gap_range_note
+from data_pipeline.sampling import gap_range_note, gaps_beyond_clips
+from hauwm.atomic import written_whole
+from model.config import ConfigError
 from model.evaluation import horizon_metrics, horizon_sums
 from model.export import FrozenWorldModel, load_frozen
 from model.losses import disagreement
+from model.networks import IMAGE_SHAPE
 
 
 def model_label(model: FrozenWorldModel, name: str) -> str:
@@ -105,7 +108,8 @@ def plot_horizon(results: list[dict], path: Path) -> None:
         axis.grid(alpha=0.3)
         axis.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    with written_whole(path) as partial:
+        fig.savefig(partial, dpi=120, format="png")
 
 
 def plot_rollout(data: dict, title: str, path: Path) -> None:
@@ -128,16 +132,56 @@ def plot_rollout(data: dict, title: str, path: Path) -> None:
     fig.suptitle(f"{title}\nclip {data['id']}, imagined after frames {data['context_indices']}; k = the step's gap, +n = "
                  "frames since the last observed one; u = disagreement", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with written_whole(path) as partial:
+        fig.savefig(partial, dpi=110, format="png")
+
+
+FIGURES = "figures.json"
+HORIZON_PLOT = "disagreement_vs_k.png"
+ROLLOUT_PLOTS = "rollouts_*.png"  # one per model
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """Refuse an --out that is no directory, or that holds an analysis already (without `overwrite`): its figures
+    would be replaced, and rollouts of models not analysed again would stay beside figures that do not list them."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file: analyze writes a directory of plots and {FIGURES}; pass another path")
+    if not overwrite and (out / FIGURES).exists():
+        raise ConfigError(f"--out {out} holds an analysis already ({FIGURES}): choose another --out, or pass "
+                          "--overwrite to replace it")
+
+
+def check_memory(batches: int, batch_size: int, seq_len: int) -> None:
+    """Refuse held-out batches (kept in memory, uint8 frames) that would take more than half the memory available."""
+    needed = batches * batch_size * seq_len * int(np.prod(IMAGE_SHAPE))
+    available = memory_available()
+    if available is not None and needed > available / 2:
+        raise ConfigError(f"--batches {batches} × --batch-size {batch_size} × --seq-len {seq_len} frames take "
+                          f"{needed / 2**30:.1f} GiB, more than half the {available / 2**30:.1f} GiB of memory "
+                          "available: lower --batches or --batch-size")
+
+
+def memory_available() -> int | None:
+    """Bytes of memory available to new allocations (Linux's MemAvailable), None where /proc/meminfo has none."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
 
 
 def analyze(
     models: list[Path], shards: Path, out: Path, split: str = "validation", batches: int = 8, batch_size: int = 8,
-    seq_len: int = 12, k_max: int | None = None, heads: int = 4, seed: int = 0,
+    seq_len: int = 12, k_max: int | None = None, heads: int = 4, seed: int = 0, overwrite: bool = False,
 ) -> list[Path]:
     """Evaluate each export in `models` on the same `batches` held-out batches of `shards`' `split` (sequences of
     `seq_len` frames at gaps 1..`k_max`: the export's K_max unless given), decode `heads` heads' rollouts, and
-    write the plots and figures.json into `out`; -> the files written."""
+    write the plots and figures.json into `out` (each file whole or not at all; with `overwrite`, the rollouts of
+    an earlier analysis there that this one does not write again are deleted); -> the files written."""
+    check_out(out, overwrite)
+    check_memory(batches, batch_size, seq_len)
     loaded = [load_frozen(path) for path in models]
     trained = {model.export_config.get("provenance", {}).get("k_max") for model in loaded}
     k_max = k_max or loaded[0].export_config.get("provenance", {}).get("k_max") or 5
@@ -145,6 +189,8 @@ def analyze(
         print(f"note: the models were trained with K_max {', '.join(map(str, sorted(trained, key=str)))}; all are "
               f"evaluated at gaps 1..{k_max} (--k-max), beyond some models' training range", file=sys.stderr)
     held_out_shards = shard_set(shards, split)
+    if beyond := gaps_beyond_clips(held_out_shards.clip_lengths(), seq_len, k_max, "--k-max"):
+        raise ConfigError(f"{beyond} (the {split} split's clips)")
     if note := gap_range_note(held_out_shards.clip_lengths(), seq_len, k_max, f"--k-max {k_max} with --seq-len {seq_len}"):
         print(f"note: {note}; the per-k figures of the long gaps rest on fewer frames", file=sys.stderr)
     dataset = SequenceDataset(held_out_shards, batch_size=batch_size, seq_len=seq_len, k_max=k_max,
@@ -159,7 +205,7 @@ def analyze(
         name = path.name if [p.name for p in models].count(path.name) == 1 else f"{index}-{path.name}"
         label = model_label(model, name)
         data = rollout(model, held_out[0], heads, context=max(1, seq_len // 2), seed=seed)
-        rollout_path = out / f"rollouts_{name}.png"
+        rollout_path = out / ROLLOUT_PLOTS.replace("*", name)
         plot_rollout(data, label, rollout_path)
         written.append(rollout_path)
         results.append({
@@ -168,10 +214,13 @@ def analyze(
             "rollout": {key: data[key] for key in ("id", "gaps", "indices", "context_indices", "frames_ahead",
                                                    "disagreement")},
         })
-    horizon_path = out / "disagreement_vs_k.png"
+    horizon_path = out / HORIZON_PLOT
     plot_horizon(results, horizon_path)
-    json_path = out / "figures.json"
+    json_path = out / FIGURES
     settings = dict(shards=str(shards), split=split, batches=batches, batch_size=batch_size, seq_len=seq_len,
                     k_max=k_max, seed=seed)
-    json_path.write_text(json.dumps(json_safe({"settings": settings, "models": results}), indent=2) + "\n")
+    with written_whole(json_path) as partial:
+        partial.write_text(json.dumps(json_safe({"settings": settings, "models": results}), indent=2) + "\n")
+    for stale in set(out.glob(ROLLOUT_PLOTS)) - set(written):  # an earlier analysis's (--overwrite)
+        stale.unlink()
     return [horizon_path, *written, json_path]

@@ -37,12 +37,13 @@ def refuse_other_frame_size(shards: str | Path, flag: str) -> None:
 
 
 def export_command(argv: list[str]) -> int:
+    from hauwm.arguments import path
     from model.export import CONFIG_FILE, WEIGHTS_FILE, ExportError, export_frozen, world_model_from_checkpoint
 
     parser = argparse.ArgumentParser(allow_abbrev=False,
                                      prog="hauwm pretrain export", description="Write the frozen export of a checkpoint.")
-    parser.add_argument("checkpoint", type=Path, help="a Lightning checkpoint of `hauwm pretrain fit` (e.g. RUN/checkpoints/last.ckpt)")
-    parser.add_argument("--out", type=Path, required=True, help="directory for weights.safetensors and config.json")
+    parser.add_argument("checkpoint", type=path, help="a Lightning checkpoint of `hauwm pretrain fit` (e.g. RUN/checkpoints/last.ckpt)")
+    parser.add_argument("--out", type=path, required=True, help="directory for weights.safetensors and config.json")
     parser.add_argument("--overwrite", action="store_true", help="replace an export already in --out")
     args = parser.parse_args(argv)
     model, provenance = world_model_from_checkpoint(args.checkpoint)
@@ -55,16 +56,18 @@ def export_command(argv: list[str]) -> int:
 
 
 def analyze_command(argv: list[str]) -> int:
+    from hauwm.arguments import path
     from model.analyze import analyze
 
     parser = argparse.ArgumentParser(
         prog="hauwm pretrain analyze", allow_abbrev=False,
         description="Disagreement against the horizon k (with/without HCU) and imagined rollouts per head (fig. 5).",
     )
-    parser.add_argument("--model", type=Path, action="append", required=True,
+    parser.add_argument("--model", type=path, action="append", required=True,
                         help="an export directory (`hauwm pretrain export`); give two to compare, e.g. with and without HCU")
-    parser.add_argument("--shards", type=Path, required=True, help="shard directory with a validation split")
-    parser.add_argument("--out", type=Path, required=True, help="directory for the PNG plots and figures.json")
+    parser.add_argument("--shards", type=path, required=True, help="shard directory with a validation split")
+    parser.add_argument("--out", type=path, required=True, help="directory for the PNG plots and figures.json")
+    parser.add_argument("--overwrite", action="store_true", help="replace an analysis already in --out")
     parser.add_argument("--split", default="validation", help="the shards' split to evaluate on (default validation)")
     parser.add_argument("--batches", type=int, default=8, help="held-out batches to average over (default 8)")
     parser.add_argument("--batch-size", type=int, default=8, help="sequences per batch (default 8)")
@@ -80,9 +83,10 @@ def analyze_command(argv: list[str]) -> int:
             parser.error(f"{flag} must be at least {least}, got {value}")
     refuse_other_frame_size(args.shards, "--shards")
     written = analyze(args.model, args.shards, args.out, split=args.split, batches=args.batches,
-                      batch_size=args.batch_size, seq_len=args.seq_len, k_max=args.k_max, heads=args.heads, seed=args.seed)
-    for path in written:
-        print(f"wrote {path}")
+                      batch_size=args.batch_size, seq_len=args.seq_len, k_max=args.k_max, heads=args.heads, seed=args.seed,
+                      overwrite=args.overwrite)
+    for file in written:
+        print(f"wrote {file}")
     return 0
 
 

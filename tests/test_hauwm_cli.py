@@ -59,7 +59,8 @@ def test_a_full_disk_is_named_and_other_os_errors_keep_their_traceback(monkeypat
 
     monkeypatch.setattr(importlib, "import_module", lambda name: stage(OSError(errno.ENOSPC, "No space left", "/d/x.tar")))
     assert main(["shards", "build"]) == 2
-    assert "no space left on the device while writing /d/x.tar" in capsys.readouterr().err
+    assert "no space left on the device while writing /d/x.tar: free some space, then run the same command again (a " \
+           "build keeps the shards it finished)" in capsys.readouterr().err  # "a run goes on from its last checkpoint"
     monkeypatch.setattr(importlib, "import_module", lambda name: stage(OSError(errno.EDQUOT, "Disk quota exceeded")))
     assert main(["finetune"]) == 2  # a write to a file already open: no path to name, the cause still said
     assert "hauwm finetune: error: the disk quota is reached: free some space" in capsys.readouterr().err

@@ -1,8 +1,10 @@
 """`hauwm shards inspect|preview|sample-data` through the command line entry point."""
 
+import errno
 import json
 import re
 import shutil
+from pathlib import Path
 
 import cv2
 import pytest
@@ -132,6 +134,24 @@ def test_preview_writes_a_grid_of_clips(built_shards, tmp_path):
     assert not (tmp_path / "preview.txt").exists()
 
 
+def test_a_preview_that_cannot_be_written_leaves_the_one_before(built_shards, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "preview.png"
+    assert main(["preview", str(built_shards), "--out", str(out), "--clips", "2"]) == 0
+    before = out.read_bytes()
+
+    def full(self, data):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    with pytest.raises(OSError):  # the hauwm command names it (hauwm/cli.py)
+        main(["preview", str(built_shards), "--out", str(out), "--clips", "3"])
+    assert out.read_bytes() == before and sorted(path.name for path in tmp_path.iterdir()) == ["preview.png"]
+    monkeypatch.undo()  # the old one was deleted and the message blamed the directory's permissions
+    (tmp_path / "dir.png").mkdir()
+    assert main(["preview", str(built_shards), "--out", str(tmp_path / "dir.png")]) == 2
+    assert f"--out {tmp_path / 'dir.png'} is a directory: name an image file" in capsys.readouterr().err
+
+
 def test_preview_of_a_damaged_shard_names_it(built_shards, tmp_path, capsys):
     shards = tmp_path / "shards"
     shutil.copytree(built_shards, shards)
@@ -167,6 +187,37 @@ def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
     assert main(["sample-data", "--out", str(notes), "--clips", "3", "--workers", "1"]) == 2
     assert f"{notes} already holds a dataset (broken.json)" in capsys.readouterr().err
     assert (notes / "broken.json").read_text() == "my notes"
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt(), OSError(errno.ENOSPC, "No space left on device")])
+def test_sample_data_stopped_midway_leaves_nothing_so_the_same_command_starts_again(tmp_path, monkeypatch, stop):
+    import data_pipeline.sample_data as sample_data
+
+    made = []
+
+    def stopped_after_two(job):
+        if len(made) == 2:
+            raise stop
+        made.append(job)
+        return real(job)
+
+    real = sample_data._make_clip
+    monkeypatch.setattr(sample_data, "_make_clip", stopped_after_two)
+    out = tmp_path / "ssv2"
+    with pytest.raises(type(stop)):
+        main(["sample-data", "--out", str(out), "--clips", "3", "--workers", "1"])
+    assert not out.exists()  # half its videos, no annotations: "already holds a dataset" after
+    (out / "videos").mkdir(parents=True)  # an empty directory of the user's stays
+    with pytest.raises(type(stop)):
+        main(["sample-data", "--out", str(out), "--clips", "3", "--workers", "1"])
+    assert [path.name for path in out.iterdir()] == ["videos"] and not any((out / "videos").iterdir())
+    monkeypatch.undo()
+    assert main(["sample-data", "--out", str(out), "--clips", "3", "--workers", "1"]) == 0
+
+
+def test_sample_data_into_a_shard_directory_is_refused(built_shards, capsys):
+    assert main(["sample-data", "--out", str(built_shards), "--clips", "3"]) == 2
+    assert f"{built_shards} is a shard directory (manifest.json): pass another --out" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(("argv", "message"), [

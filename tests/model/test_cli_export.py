@@ -481,6 +481,31 @@ def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path, c
         in capsys.readouterr().err
 
 
+def test_analyze_replaces_an_earlier_analysis_only_when_asked_and_then_whole(built_shards, tiny_export, tmp_path,
+                                                                             capsys):
+    out = tmp_path / "analysis"
+    args = ["analyze", "--shards", str(built_shards), "--out", str(out), "--batches", "1", "--batch-size", "2",
+            "--seq-len", "8"]
+    assert main([*args, "--model", str(tiny_export), "--model", str(tiny_export)]) == 0
+    first = (out / "figures.json").read_text()
+    assert main([*args, "--model", str(tiny_export)]) == 2  # replaced without a word before
+    assert f"--out {out} holds an analysis already (figures.json): choose another --out, or pass --overwrite" \
+        in capsys.readouterr().err
+    assert (out / "figures.json").read_text() == first
+    assert main([*args, "--model", str(tiny_export), "--overwrite"]) == 0
+    assert len(json.loads((out / "figures.json").read_text())["models"]) == 1
+    assert sorted(path.name for path in out.iterdir()) == [  # the first analysis's two rollouts are gone
+        "disagreement_vs_k.png", "figures.json", f"rollouts_{tiny_export.name}.png"]
+    (tmp_path / "file").write_text("a user's")
+    assert main([*args[:-6], "--out", str(tmp_path / "file"), "--model", str(tiny_export)]) == 2
+    assert "is a file: analyze writes a directory of plots" in capsys.readouterr().err
+    # an unset shell variable: the files went into the current directory
+    assert main(["analyze", "--shards", str(built_shards), "--out", "", "--model", str(tiny_export)]) == 2
+    assert "--out: an empty path (an unset shell variable?)" in capsys.readouterr().err
+    assert main(["export", str(tmp_path / "last.ckpt"), "--out", ""]) == 2
+    assert "--out: an empty path (an unset shell variable?)" in capsys.readouterr().err
+
+
 def test_logging_every_n_steps_logs_every_term_and_counter_at_those_steps(built_shards, tmp_path):
     root = tmp_path / "every3"
     assert fit(built_shards, root, "--trainer.log_every_n_steps", "3", "--trainer.max_steps", "7",
@@ -525,7 +550,12 @@ def test_16_mixed_asked_on_a_cpu_trains_in_bf16_mixed_with_float32_distributions
 @pytest.mark.parametrize(("flags", "message"), [(["--seq-len", "1"], "--seq-len must be at least 2, got 1"),
                                                 (["--batches", "0"], "--batches must be at least 1, got 0"),
                                                 (["--k-max", "0"], "--k-max must be at least 1, got 0"),
-                                                (["--seed", "-1"], "--seed must be at least 0, got -1")])
+                                                (["--seed", "-1"], "--seed must be at least 0, got -1"),
+                                                # ran for hours in the gap tables and the per-k evaluation
+                                                (["--k-max", "10000000"], "--k-max 10000000 with sequences of 12 "
+                                                 "frames: the longest clip has"),
+                                                # kept every batch in memory until the machine ran out of it
+                                                (["--batches", "1000000000"], "lower --batches or --batch-size")])
 def test_analyze_refuses_settings_that_leave_nothing_to_measure(built_shards, tiny_export, tmp_path, capsys, flags,
                                                                   message):
     args = ["analyze", "--model", str(tiny_export), "--shards", str(built_shards), "--out", str(tmp_path / "a"), *flags]
