@@ -13,8 +13,12 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import IO
+
+PROBE_S = 0.2  # longer than any lock_holder holds its shared lock, far shorter than any holder holds the lock
 
 
 class LockHeld(Exception):
@@ -30,21 +34,34 @@ def pid_lock(path: Path) -> Iterator[None]:
     """Hold an exclusive lock on `path` (made where it does not exist), with this process's pid written in it."""
     while True:
         lock = open(path, "a+")
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
+        if not _flock_soon(lock):
             lock.seek(0)
             pid = lock.read().strip() or "?"
             lock.close()
-            raise LockHeld(pid) from None
-        if path.exists() and os.stat(path).st_ino == os.fstat(lock.fileno()).st_ino:
-            break
+            raise LockHeld(pid)
+        with contextlib.suppress(FileNotFoundError):
+            if os.stat(path).st_ino == os.fstat(lock.fileno()).st_ino:
+                break
         lock.close()  # the holder before deleted the file between our open and our lock: lock the new one
     with lock:
         lock.truncate(0)
         lock.write(str(os.getpid()))
         lock.flush()
         yield
+
+
+def _flock_soon(lock: IO) -> bool:
+    """Whether the exclusive lock on `lock` is ours within PROBE_S: `lock_holder` holds a shared lock for an instant,
+    and a process asking then would otherwise be told that the lock is held."""
+    deadline = time.monotonic() + PROBE_S
+    while True:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.005)
 
 
 def lock_holder(path: Path) -> int | None:

@@ -22,3 +22,17 @@ def test_a_second_holder_is_refused_with_the_first_ones_pid_and_the_lock_goes_wi
         path.unlink()  # a holder may delete its file before it lets go
     with pid_lock(path):
         assert path.read_text() == str(os.getpid())
+
+
+def test_a_lock_asked_for_while_lock_holder_looks_is_not_refused(tmp_path):
+    """lock_holder holds a shared lock for an instant; a process asking for the lock then was told it was held."""
+    import fcntl
+    import threading
+
+    path = tmp_path / ".lock"
+    path.write_text("")
+    looking = open(path)
+    fcntl.flock(looking, fcntl.LOCK_SH)  # as lock_holder does, from another open file
+    threading.Timer(0.05, looking.close).start()  # and lets go an instant later
+    with pid_lock(path):  # LockHeld('?') before
+        assert path.read_text() == str(os.getpid())
