@@ -22,6 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from hauwm.messages import first_line
+
 RESIZE_MODES = ("squash", "center-crop")
 DECLARED_SLACK = 2  # frames a container's declared duration may exceed the decoded count by
 MAX_DECLARED_FRAMES = 1_000_000  # more, and decord is not tried: a damaged duration of 1e15 ms made it abort
@@ -170,7 +172,7 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
             resized.append(resize_frame(frame, size, resize))
             decoded_until = max(decoded_until, ends)
     except Exception as error:  # DECORDLimitReachedError (frames recovered from corrupt data), a failed decoder check
-        decoder_error = f"{backend}: {str(error).strip().splitlines()[0][:200]}"
+        decoder_error = f"{backend}: {first_line(error)[:200]}"
     declared = container.frame_count
     if declared and broken_off(len(resized), decoded_until, container):
         # no count of the frames decoded, and the same words whether the decoder stopped at the damage or raised

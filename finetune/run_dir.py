@@ -35,6 +35,7 @@ import yaml
 from finetune.agent import Agent, DivergedError
 from finetune.config import FinetuneConfig, FinetuneError, load_config, step_unit
 from hauwm.atomic import written_whole
+from hauwm.messages import first_line
 from hauwm.pid_lock import LockHeld, pid_lock
 from model.config import ConfigError
 from model.export import WEIGHTS_FILE, non_finite, torch_load_failure
@@ -127,7 +128,7 @@ def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dic
         with written_whole(path) as partial:
             torch.save(state, partial)
     except (OSError, RuntimeError) as err:  # torch's zip writer reports a full disk as a RuntimeError
-        raise FinetuneError(f"{path} could not be written ({str(err).splitlines()[0]}; a full disk or quota?); what "
+        raise FinetuneError(f"{path} could not be written ({first_line(err)}; a full disk or quota?); what "
                             "was written before is kept: free some space and run the same command again (it goes on "
                             "from the last checkpoint)") from None
 

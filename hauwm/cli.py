@@ -18,6 +18,8 @@ import os
 import signal
 import sys
 
+from hauwm.messages import first_line
+
 STAGES = {
     "shards": ("data_pipeline.cli", "shard SSv2 into WebDataset tars, inspect and preview them"),
     "pretrain": ("model.cli", "pre-train the ensemble RSSM (fit), export it, analyze it"),
@@ -70,7 +72,7 @@ def out_of_memory(err: BaseException) -> bool:
 
 def memory_ran_out(stage: str, err: BaseException) -> int:
     """Say in one line that `stage` ran out of memory, and what lowers its memory; the exit status."""
-    what = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    what = first_line(err)
     print(f"hauwm {stage}: error: out of memory ({what}): {SMALLER.get(stage, 'lower the sizes this command was given')}",
           file=sys.stderr)
     return 2

@@ -95,10 +95,12 @@ def peer_lost(err: RuntimeError) -> str | None:
     None for any other RuntimeError: gloo raises a bare RuntimeError from its transport, NCCL a DistBackendError."""
     import torch.distributed as dist
 
+    from hauwm.messages import first_line
+
     if not (isinstance(err, dist.DistError) or "third_party/gloo" in str(err)):
         return None
     rank = dist.get_rank() if dist.is_initialized() else os.environ.get("RANK", "?")
-    reason = str(err).strip().splitlines()[0].split("] ", 1)[-1].split(". ", 1)[0][:160]
+    reason = first_line(err).split("] ", 1)[-1].split(". ", 1)[0][:160]
     return (f"rank {rank} lost the other ranks of the job ({reason}): a rank stopped first, and its own error, or the "
             "signal that killed it, says why (above, or in its node's log)")
 

@@ -52,6 +52,21 @@ def test_a_damaged_clip_is_described_the_same_whether_the_decoder_stops_or_raise
     assert (raised.value.reason, raised.value.detail) == (stopped.value.reason, stopped.value.detail)
 
 
+def test_a_decoder_error_without_a_message_is_a_clip_error_not_a_crash(tmp_path, monkeypatch):
+    path = tmp_path / "clip.webm"
+    write_webm(path, np.random.default_rng(0).integers(0, 256, (12, 64, 96, 3), dtype=np.uint8))
+    whole = decode._decode_decord
+
+    def raising_bare(clip_path):  # a whole stream, then an error with no message
+        yield from whole(clip_path)
+        raise RuntimeError()
+
+    monkeypatch.setattr(decode, "_decode_decord", raising_bare)
+    with pytest.raises(ClipError) as raised:  # an IndexError killed the decoder process: recorded as "crashed"
+        decode_clip(path, 64)
+    assert (raised.value.reason, raised.value.detail) == ("corrupt", "decord: RuntimeError")
+
+
 def test_a_path_that_holds_no_video_file_says_what_is_there(tmp_path):
     """A directory or a device at <id>.webm was reported as "no file at" it."""
     (tmp_path / "dir.webm").mkdir()
