@@ -391,7 +391,7 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
         log(f"wrote {config.out / MANIFEST_FILE} and {config.out / ERRORS_FILE}")
     rate = len(failed) / max(total, 1)
     if rate > config.max_error_rate:
-        where = config.out / ERRORS_FILE if manifest else "the shards' .stats.json (all parts unfinished)"
+        where = config.out / ERRORS_FILE if manifest else "the shards' .stats.json (other parts are unfinished)"
         log(f"error: {len(failed)} of {total} clips failed ({rate:.1%}), more than --max-error-rate "
             f"{config.max_error_rate:g}; see {where}")
         return manifest, 1

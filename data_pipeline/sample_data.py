@@ -10,8 +10,8 @@ so the next frame is nearly certain but a frame k steps ahead is uncertain, and 
 the property the paper's horizon-calibrated uncertainty (eq. 3) is meant to capture. The caption and
 class come from the SSv2-style templates below, chosen from the clip's actual net motion.
 
-`--with-broken` adds the failure kinds the shard builder must survive (`BROKEN_KINDS`), and lists them
-in `DIR/broken.json` (id → kind) so tests can check that each one lands in `errors.jsonl`.
+`--with-broken` adds the failure kinds the shard builder must survive (`BROKEN_KINDS`), listed in
+`DIR/broken.json` (id → kind; empty without them) so tests can check that each one lands in `errors.jsonl`.
 """
 
 from __future__ import annotations

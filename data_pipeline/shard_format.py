@@ -39,7 +39,7 @@ BUILD_HINT = ("build it with `hauwm shards build --annotations DIR --videos DIR 
               "(or `hauwm shards sample-data` first for the built-in data)")
 REBUILD_MANIFEST = ("re-run the `hauwm shards build` command that made the directory: it keeps the finished shards "
                     "and writes manifest.json and errors.jsonl again")
-# the entries of a manifest its readers use (inspect, preview, the loader, `hauwm pretrain`), part by part
+# the header readers of the .npy versions numpy writes, by (major, minor) version
 NPY_HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
 
 
@@ -95,7 +95,8 @@ def frame_histogram(value: object) -> bool:
     return isinstance(value, dict) and all(key.isdigit() and count(n) for key, n in value.items())
 
 
-# what a build writes in each entry: (key, test, what the test wants)
+# the entries of a manifest its readers use (inspect, preview, the loader, `hauwm pretrain`), part by part, as a
+# build writes them: (key, test, what the test wants)
 SETTINGS_KINDS = (("size", lambda v: count(v) and v > 0, "a positive whole number"),
                   ("resize", lambda v: isinstance(v, str), "a string"),
                   ("encoding", lambda v: v in ENCODINGS, f"one of {', '.join(ENCODINGS)}"),
