@@ -18,7 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from .shard_format import (ENCODINGS, ERRORS_FILE, MANIFEST_FILE, REBUILD_MANIFEST, decode_frames, frames_member,
-                           read_manifest, read_samples)
+                           UnreadableShard, read_manifest, read_samples)
 
 
 def check_shard(path: Path, expected: dict, settings: dict) -> list[str]:
@@ -52,7 +52,9 @@ def check_shard(path: Path, expected: dict, settings: dict) -> list[str]:
                 problems.append(f"{path.name}: clip {clip} stores {len(stored)} frames, "
                                 f"its JSON says {metadata['num_frames']}")
             histogram[str(len(stored))] += 1
-    except (KeyError, ValueError) as error:  # read_samples names a broken tar with a ValueError
+    except UnreadableShard as error:  # a broken tar
+        return problems + [f"{path.name}: unreadable ({error.reason})"]
+    except (KeyError, ValueError) as error:  # a clip without its members, or with a damaged JSON
         return problems + [f"{path.name}: unreadable ({type(error).__name__}: {error})"]
     clips, frames = histogram.total(), sum(int(length) * n for length, n in histogram.items())
     if clips != expected["clips"] or frames != expected["frames"]:

@@ -65,7 +65,7 @@ from webdataset.utils import pytorch_worker_info
 
 from .batch_slots import BatchSlots, SlotBatch, batch_views, block_bytes, shared_memory_free
 from .sampling import gaps_of, sample_indices
-from .shard_format import MANIFEST_FILE, decode_frames, frames_member, read_manifest, read_samples
+from .shard_format import MANIFEST_FILE, UnreadableShard, decode_frames, frames_member, read_manifest, read_samples
 from .ssv2 import SPLITS
 
 VERIFY_HINT = "check the shards with `hauwm shards inspect DIR --verify` and rebuild the broken one"
@@ -395,7 +395,7 @@ class SequenceDataset(IterableDataset):
         except Exception as error:
             info = get_worker_info()
             who = "the loader" if info is None else f"DataLoader worker {info.id} ({self.split} split, pid {os.getpid()})"
-            cause = error if isinstance(error, LoaderError) else f"{type(error).__name__}: {error}"
+            cause = error if isinstance(error, (LoaderError, UnreadableShard)) else f"{type(error).__name__}: {error}"
             failure = LoaderError(f"{who}, reading shard {self.reading(worker)}: {cause}")
             if info is None:
                 raise failure from error

@@ -14,7 +14,8 @@ import numpy as np
 from hauwm.atomic import written_whole
 
 from .sampling import gaps_of, sample_indices
-from .shard_format import MANIFEST_FILE, ShardDirError, decode_frames, frames_member, read_manifest, read_samples
+from .shard_format import (MANIFEST_FILE, ShardDirError, UnreadableShard, decode_frames, frames_member, read_manifest,
+                           read_samples)
 
 SCALE, LABEL_HEIGHT, CAPTION_HEIGHT = 2, 14, 16
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # what cv2.imencode writes here
@@ -55,7 +56,9 @@ def write_preview(directory: Path, out: Path, split: str | None = None, clips: i
             rows.append((metadata, indices, decode_frames(member, extension, indices)))
             if len(rows) == clips:
                 break
-    except (KeyError, ValueError) as error:  # a shard read_samples, frames_member or decode_frames cannot read
+    except UnreadableShard as error:  # its message says what to do
+        raise ShardDirError(f"split {split!r} in {directory}: {error}") from None
+    except (KeyError, ValueError) as error:  # a clip frames_member or decode_frames cannot read
         what = f"no {error} member" if isinstance(error, KeyError) else error
         raise ShardDirError(f"split {split!r} in {directory}: {what}; check the shards with `hauwm shards inspect "
                             f"{directory} --verify`") from None

@@ -211,25 +211,33 @@ def frames_member(sample: dict) -> tuple[str, bytes]:
     raise ValueError(f"clip {sample.get('__key__')!r} has no frames member (.{' or .'.join(ENCODINGS.values())})")
 
 
+class UnreadableShard(ValueError):
+    """A shard that is not a tar of clips; `reason` says why, the message also what to do."""
+
+    def __init__(self, source: str, reason: str):
+        super().__init__(f"{source} is not a readable shard ({reason}); check it with `hauwm shards inspect DIR "
+                         "--verify` and rebuild it")
+        self.reason = reason
+
+
 def read_samples(stream: BinaryIO, source: str) -> Iterator[dict]:
     """A shard's clips in order, as webdataset samples: `{"__key__": id, "json": bytes, "jpgs" | "npy": bytes}`.
     Reads the tar as a stream (tarfile's "r|" mode: no seeking, so `pipe:` sources work); `source` names the
-    shard in errors."""
-    broken = f"{source} is not a readable shard (%s); check it with `hauwm shards inspect DIR --verify` and rebuild it"
+    shard in errors (UnreadableShard)."""
     sample: dict = {}
     try:
         with tarfile.open(fileobj=stream, mode="r|") as tar:
             for member in tar:
                 if not member.isfile():
-                    raise ValueError(broken % f"member {member.name!r} is not a plain file")
+                    raise UnreadableShard(source, f"member {member.name!r} is not a plain file")
                 if "." not in member.name:
-                    raise ValueError(broken % f"member {member.name!r} has no extension: not a shard of clips")
+                    raise UnreadableShard(source, f"member {member.name!r} has no extension: not a shard of clips")
                 key, extension = member.name.split(".", 1)
                 if sample and key != sample["__key__"]:
                     yield sample
                     sample = {}
                 sample["__key__"], sample[extension] = key, tar.extractfile(member).read()
     except tarfile.TarError as error:
-        raise ValueError(broken % error) from None
+        raise UnreadableShard(source, str(error)) from None
     if sample:
         yield sample

@@ -158,8 +158,12 @@ def test_preview_of_a_damaged_shard_names_it(built_shards, tmp_path, capsys):
     damaged = sorted(shards.glob("train-*.tar"))[0]
     damaged.write_bytes(damaged.read_bytes()[: damaged.stat().st_size // 2])
     assert main(["preview", str(shards), "--out", str(tmp_path / "preview.png"), "--clips", "1000"]) == 2
-    assert f"{damaged} is not a readable shard (unexpected end of data); check it with `hauwm shards inspect" in \
-        capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{damaged} is not a readable shard (unexpected end of data); check it with `hauwm shards inspect" in err
+    assert err.count("--verify") == 1, err  # the hint twice before
+    assert main(["inspect", str(shards), "--verify"]) == 1
+    out = capsys.readouterr().out  # inspect --verify told the user to run inspect --verify
+    assert f"FAILED {damaged.name}: unreadable (unexpected end of data)\n" in out and "--verify" not in out
 
 
 def test_sample_data_writes_the_ssv2_layout(tmp_path, capsys):
