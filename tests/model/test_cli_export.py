@@ -93,6 +93,9 @@ def test_export_loads_without_unpickling(tiny_export, monkeypatch):
 def test_export_errors_are_clear(tiny_export, tmp_path):
     with pytest.raises(ExportError, match="not a HAUWM export.*hauwm pretrain export"):
         load_frozen(tmp_path)
+    with pytest.raises(ExportError, match=rf"config.json is a file: an export is the directory .* \(e.g. "
+                                          rf"{re.escape(str(tiny_export))}\)"):  # ".../config.json/config.json not found"
+        load_frozen(tiny_export / "config.json")
     wrong_version = tmp_path / "v2"
     shutil.copytree(tiny_export, wrong_version)
     config = json.loads((wrong_version / "config.json").read_text())
