@@ -116,9 +116,10 @@ class ShardDataModule(lightning.LightningDataModule):
         if stage in (None, "fit"):
             train_shards = shard_set(hp.shards, hp.train_split, hp.shard_url)
             self.train_clip_length = train_shards.median_frames(hp.seq_len)  # the export records it (PretrainModule)
-            if beyond := gaps_beyond_clips(train_shards.clip_lengths(), hp.seq_len, hp.k_max, "--data.k_max"):
+            lengths = train_shards.clip_lengths()
+            if beyond := gaps_beyond_clips(lengths, hp.seq_len, hp.k_max, "--data.k_max"):
                 raise LoaderError(f"{beyond} (the {hp.train_split} split's clips)")
-            if note := gap_range_note(train_shards.clip_lengths(), hp.seq_len, hp.k_max,
+            if note := gap_range_note(lengths, hp.seq_len, hp.k_max,
                                       f"--data.k_max {hp.k_max} with --data.seq_len {hp.seq_len}"):
                 rank_zero_info(f"note: {note}")
             self.train_set = SequenceDataset(train_shards, num_workers=hp.num_workers, shuffle=True, continuous=True,

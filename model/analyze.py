@@ -189,9 +189,10 @@ def analyze(
         print(f"note: the models were trained with K_max {', '.join(map(str, sorted(trained, key=str)))}; all are "
               f"evaluated at gaps 1..{k_max} (--k-max), beyond some models' training range", file=sys.stderr)
     held_out_shards = shard_set(shards, split)
-    if beyond := gaps_beyond_clips(held_out_shards.clip_lengths(), seq_len, k_max, "--k-max"):
+    lengths = held_out_shards.clip_lengths()
+    if beyond := gaps_beyond_clips(lengths, seq_len, k_max, "--k-max"):
         raise ConfigError(f"{beyond} (the {split} split's clips)")
-    if note := gap_range_note(held_out_shards.clip_lengths(), seq_len, k_max, f"--k-max {k_max} with --seq-len {seq_len}"):
+    if note := gap_range_note(lengths, seq_len, k_max, f"--k-max {k_max} with --seq-len {seq_len}"):
         print(f"note: {note}; the per-k figures of the long gaps rest on fewer frames", file=sys.stderr)
     dataset = SequenceDataset(held_out_shards, batch_size=batch_size, seq_len=seq_len, k_max=k_max,
                               num_workers=0, shuffle=False, seed=seed, batches_per_worker=batches)
