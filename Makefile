@@ -11,17 +11,31 @@ export PYOPENGL_PLATFORM ?= osmesa
 # Debian packages the project needs: OSMesa for headless MuJoCo rendering.
 APT_PACKAGES := libosmesa6 libgl1 libegl1
 
-.PHONY: install demo test test-all test-floor bench bench-checks clean system-deps
+.PHONY: install demo test test-all test-floor bench bench-checks clean system-deps disk-check
 
 install: $(STAMP)
 
 # constraints.txt: the exact versions CI tests (pyproject.toml has ranges; see the README on GPU machines)
 $(STAMP): pyproject.toml constraints.txt
 	@$(MAKE) --no-print-directory system-deps
+	@$(MAKE) --no-print-directory disk-check
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test]" -c constraints.txt
 	touch $(STAMP)
+
+# torch 2.14.1 with its CUDA libraries makes .venv about 6.3 GB: say so before pip fails half-way with ENOSPC.
+INSTALL_MIN_FREE_GB ?= 7
+disk-check:
+	@if ! ls -d $(VENV)/lib/python*/site-packages/torch >/dev/null 2>&1; then \
+	  free_gb=$$(( $$(df -Pk . | awk 'NR==2 {print $$4}') / 1048576 )); \
+	  if [ "$$free_gb" -lt "$(INSTALL_MIN_FREE_GB)" ]; then \
+	    echo "make install: $(VENV) needs about $(INSTALL_MIN_FREE_GB) GB of disk (torch with its CUDA libraries)," \
+	         "and the filesystem of $(CURDIR) has $$free_gb GB free: free some space (df -h .)," \
+	         "or run 'make install INSTALL_MIN_FREE_GB=0' to try anyway" >&2; \
+	    exit 1; \
+	  fi; \
+	fi
 
 system-deps:
 	@missing=$$(for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
