@@ -499,10 +499,11 @@ class ResumableDataLoader(DataLoader):
                           f"DataLoader workers), this run {self.dataset.streams}: the rest of epoch {epoch} is not "
                           "what an unbroken run would have read (clips may repeat or be left out in it), later epochs "
                           "are; resume with the same --data.num_workers and devices for an exact resume", stacklevel=2)
-        # saved after an epoch's last batch (all of them, or the last that limit_train_batches lets through):
+        # saved after an epoch's last batch (all of them, or the last that limit_train_batches lets through), or
+        # past the end of this run's shorter epochs (SetEpoch.on_load_checkpoint marks Lightning's epoch ended then):
         # Lightning goes on with the next epoch, from this iterator and without the epoch-start hooks (so without
         # SetEpoch)
-        if state.get("epoch_ended", False) or batches >= len(self):
+        if state.get("epoch_ended", False) or self.epoch_ended() or batches >= len(self):
             epoch, batches = epoch + 1, 0
         self.dataset.resume_at(epoch, batches)
 

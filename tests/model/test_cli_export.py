@@ -313,6 +313,20 @@ def test_a_resume_whose_epochs_got_shorter_than_its_checkpoints_position_reads_e
     assert len(set(batches)) == 6
 
 
+def test_a_resume_whose_batch_limit_is_below_its_checkpoints_position_reads_each_epoch_once(built_shards, tiny_run,
+                                                                                           tmp_path):
+    """tiny_run stopped at batch 4 of a 6-batch epoch; `--trainer.limit_train_batches 3` ends every epoch at batch 3.
+    Lightning took the checkpoint's epoch as ended (SetEpoch), but the loader resumed inside it: the next epoch trained
+    on the rest of the old epoch's data (2 batches, an epoch cut short), and the data epoch lagged Lightning's."""
+    shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
+    RecordBatches.steps.clear()
+    assert fit(built_shards, tmp_path, "--ckpt_path", "last", "--trainer.max_steps", str(RUN_STEPS + 6),
+               "--trainer.limit_train_batches", "3", "--trainer.callbacks+=test_cli_export.RecordBatches") == 0
+    epochs = [(lightning_epoch, data_epoch) for lightning_epoch, data_epoch, _ in RecordBatches.steps]
+    assert epochs == [(7, 7)] * 3 + [(8, 8)] * 3
+    assert len({tuple(ids) for *_, ids in RecordBatches.steps}) == 6
+
+
 def test_a_resume_that_changes_a_model_setting_is_refused(built_shards, tiny_run, tmp_path, capsys):
     shutil.copytree(tiny_run / "checkpoints", tmp_path / "checkpoints")
     for flags, said in ((["--model.lr", "0.5"], "model.lr 0.001 (asked: 0.5)"),
