@@ -23,6 +23,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from hauwm.arguments import MAX_TIMEOUT
 from hauwm.atomic import written_whole
 
 from .shard_format import ENCODINGS, ERRORS_FILE, FORMAT_VERSION, MANIFEST_FILE, add_clip, open_writer
@@ -33,7 +34,6 @@ SETTINGS_FILE = "build.json"
 RETRYABLE = ("missing", "timeout", "crashed")  # failures of the moment: the file may arrive, the machine be less busy
 MAX_MEMBER_NAME = 100  # bytes of a tar member's name in the USTAR format the shards are written in
 MAX_SIZE = 512  # --size: the world model reads 64×64; SSv2's clips are 240 pixels high
-MAX_TIMEOUT = 86_400.0  # --timeout: a day; the wait for a decoder must stay a number the OS can wait for (not inf)
 
 
 class BuildError(Exception):

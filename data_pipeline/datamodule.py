@@ -21,12 +21,12 @@ import lightning
 import torch
 from lightning.pytorch.utilities import rank_zero_info
 
+from hauwm.arguments import MAX_TIMEOUT
+
 from .loader import (LoaderError, SequenceDataset, check_shard_url, check_worker_priority, make_dataloader,
                      shard_set)
 from .sampling import gap_range_note, gaps_beyond_clips
 from .shard_format import read_manifest
-
-MAX_TIMEOUT = 86_400.0  # --data.timeout: a day
 
 
 class SetEpoch(lightning.Callback):

@@ -93,23 +93,23 @@ def read_errors(path: Path) -> tuple[list[dict], int]:
     return records, damaged
 
 
-def inspect_shards(directory: Path, verify: bool = False, log=print) -> int:
+def inspect_shards(directory: Path, verify: bool = False) -> int:
     directory = Path(directory)
     manifest = read_manifest(directory)
     errors, damaged = read_errors(directory / ERRORS_FILE)
     settings = manifest["settings"]
-    log(f"{directory}: format {manifest['format_version']}, {settings['size']}×{settings['size']} "
+    print(f"{directory}: format {manifest['format_version']}, {settings['size']}×{settings['size']} "
         f"{settings['resize']}, encoding {settings['encoding']}" +
         (f" (quality {settings['quality']})" if settings["encoding"] == "jpeg" else ""))
-    log(f"{'split':<12}{'clips':>8}{'frames':>10}{'shards':>8}{'MB':>9}{'B/frame':>9}{'errors':>8}")
+    print(f"{'split':<12}{'clips':>8}{'frames':>10}{'shards':>8}{'MB':>9}{'B/frame':>9}{'errors':>8}")
     for split, counts in manifest["splits"].items():
-        log(f"{split:<12}{counts['clips']:>8}{counts['frames']:>10}{len(counts['shards']):>8}"
+        print(f"{split:<12}{counts['clips']:>8}{counts['frames']:>10}{len(counts['shards']):>8}"
             f"{counts['bytes'] / 1e6:>9.1f}{counts['bytes'] / max(counts['frames'], 1):>9.0f}{counts['errors']:>8}")
     by_reason = Counter((error["split"], error["reason"]) for error in errors)
     for (split, reason), count in sorted(by_reason.items()):
-        log(f"  {split} errors: {reason}: {count}")
+        print(f"  {split} errors: {reason}: {count}")
     if damaged:
-        log(f"  {ERRORS_FILE}: {damaged} lines are not clip failures (the file is damaged); {REBUILD_MANIFEST}")
+        print(f"  {ERRORS_FILE}: {damaged} lines are not clip failures (the file is damaged); {REBUILD_MANIFEST}")
     if not verify:
         return 0
     shards = [(split, shard) for split, counts in manifest["splits"].items() for shard in counts["shards"]]
@@ -121,6 +121,6 @@ def inspect_shards(directory: Path, verify: bool = False, log=print) -> int:
         problems.append(f"{ERRORS_FILE}: {len(errors)} clip failures and {damaged} damaged lines, manifest says "
                         f"{manifest['errors']['total']} failures")
     for problem in problems:
-        log(f"  FAILED {problem}")
-    log(f"verify: {len(shards)} shards, " + (f"{len(problems)} problems" if problems else "all match the manifest"))
+        print(f"  FAILED {problem}")
+    print(f"verify: {len(shards)} shards, " + (f"{len(problems)} problems" if problems else "all match the manifest"))
     return 1 if problems else 0

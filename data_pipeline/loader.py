@@ -146,8 +146,7 @@ def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -
                           f"{Path(directory) / MANIFEST_FILE} are missing, e.g. {missing[0]}: copy them back, or "
                           f"{VERIFY_HINT}")
     counts = [{int(frames): n for frames, n in s["frame_counts"].items()} for s in shards]
-    size = manifest["settings"]["size"]  # sizes the workers' batch slots; a batch larger than a slot goes without
-    return ShardSet(split, urls, counts, size if isinstance(size, int) and size > 0 else ShardSet.frame_size)
+    return ShardSet(split, urls, counts, manifest["settings"]["size"])  # sizes the workers' batch slots
 
 
 def shard_samples(sources: Iterator[dict]) -> Iterator[dict]:

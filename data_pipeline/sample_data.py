@@ -179,7 +179,7 @@ def _make_clip(job: tuple[int, str, Path, str]) -> dict:
 
 def split_sizes(clips: int) -> dict[str, int]:
     """About 3/4 train, 1/8 validation, 1/8 test (at least one each: `--clips` is at least 3)."""
-    held_out = max(1, clips // 8) if clips >= 3 else 0
+    held_out = max(1, clips // 8)
     return {"train": clips - 2 * held_out, "validation": held_out, "test": held_out}
 
 

@@ -117,10 +117,10 @@ class _Worker:
 class DecodePool:
     """`imap(paths)` yields one `ClipResult` per path, in order."""
 
-    def __init__(self, workers: int, settings: DecodeSettings, timeout: float, lookahead: int | None = None):
+    def __init__(self, workers: int, settings: DecodeSettings, timeout: float):
         self.settings, self.timeout = settings, timeout
         self.workers = [_Worker(settings) for _ in range(max(1, workers))]
-        self.lookahead = lookahead if lookahead is not None else 2 * len(self.workers)
+        self.lookahead = 2 * len(self.workers)  # clips decoded ahead of the one written next
 
     def __enter__(self) -> "DecodePool":
         return self

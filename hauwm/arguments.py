@@ -1,9 +1,11 @@
-"""argparse types the stages' command lines share."""
+"""argparse types and limits the stages' command lines share."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+MAX_TIMEOUT = 86_400.0  # a --timeout of a day at most: a wait the OS can represent (1e300 s overflows, inf never ends)
 
 
 def path(text: str) -> Path:
