@@ -8,14 +8,16 @@
 Schema version 1 (exports before WorldModelConfig) held the world_model keys flat at the top level; it is
 still read, and read_config hands both versions back in the version-2 layout.
 
-Loading reads JSON and safetensors only — nothing is unpickled — and checks the schema version and every
-tensor's name and shape against the architecture the config describes.
+Loading reads JSON and safetensors only — nothing is unpickled — and checks the kind, the schema version, the
+frames the model reads (image_shape, normalisation), the provenance's fields, and every tensor's name and shape
+against the architecture the config describes.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import math
 import pickle
 from collections.abc import Mapping
 from pathlib import Path
@@ -119,8 +121,12 @@ def read_config(export_dir: str | Path) -> dict[str, Any]:
     if version == 1:
         flat = saved_settings(config)
         config = {key: value for key, value in config.items() if key not in flat} | {"world_model": flat}
+    if config.get("kind", KIND) != KIND:
+        raise ExportError(f"{path} is of kind {config['kind']!r}, not a {KIND}: pass the output of `hauwm pretrain "
+                          "export CKPT --out DIR`")
     if not isinstance(config.get("world_model"), dict):
         raise ExportError(f"{path} lacks the \"world_model\" settings; re-export the checkpoint")
+    _check_frames(config, path)
     if not isinstance(config.get("provenance", {}), dict):
         raise ExportError(f"{path}: \"provenance\" is {config['provenance']!r}, not an object; re-export the checkpoint")
     for key, (test, wanted) in PROVENANCE_KINDS.items():  # each may be absent or null: not recorded
@@ -132,6 +138,28 @@ def read_config(export_dir: str | Path) -> dict[str, Any]:
     except ConfigError as err:
         raise ExportError(f"{path}: {err}; re-export the checkpoint with this version of hauwm") from None
     return config
+
+
+def _check_frames(config: dict, path: Path) -> None:
+    """The frames every user of an export feeds it (pre-training's shards, the environments of fine-tuning) are
+    IMAGE_SHAPE, normalised as NORMALISATION says: an export that records others cannot read them."""
+    image_shape = config.get("image_shape", IMAGE_SHAPE)
+    if not isinstance(image_shape, (list, tuple)) or list(image_shape) != list(IMAGE_SHAPE):
+        raise ExportError(f"{path}: image_shape {image_shape!r} differs from the {list(IMAGE_SHAPE)} frames this "
+                          "version of hauwm feeds a world model (the shards', the environments')")
+    normalisation = config.get("normalisation", NORMALISATION)
+    if not isinstance(normalisation, dict) or \
+            (normalisation.get("scale"), normalisation.get("offset")) != (NORMALISATION["scale"], NORMALISATION["offset"]):
+        raise ExportError(f"{path}: image normalisation {normalisation!r} differs from this code's "
+                          f"{NORMALISATION['formula']}")
+
+
+def a_length(value: object) -> bool:
+    """Whether `value` (from JSON) is a positive, finite number of frames."""
+    try:
+        return type(value) in (int, float) and 0 < float(value) < math.inf
+    except OverflowError:  # an int beyond any float
+        return False
 
 
 def whole(value: object) -> bool:
@@ -148,7 +176,9 @@ PROVENANCE_KINDS = {"global_step": (whole, "a whole number"),
                     "hcu": (lambda v: isinstance(v, bool), "true or false"),
                     "lambda_init": (number, "a number"),
                     "lambda_final": (number, "a number"),
-                    "checkpoint": (lambda v: isinstance(v, str), "a path")}
+                    "checkpoint": (lambda v: isinstance(v, str), "a path"),
+                    "train_clip_length": (a_length, "a positive number of frames (the median length of the "
+                                          "pre-training clips)")}
 
 
 def non_finite(tensors: Mapping[str, torch.Tensor]) -> list[str]:
@@ -181,6 +211,9 @@ def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> F
             f"{weights_path} does not match {Path(export_dir) / CONFIG_FILE}: " + "; ".join(sorted(problems)[:8])
             + (f" (and {len(problems) - 8} more)" if len(problems) > 8 else "")
         )
+    if model.rssm.feature_dim != config.get("feature_dim", model.rssm.feature_dim):
+        raise ExportError(f"{Path(export_dir) / CONFIG_FILE} says feature_dim {config['feature_dim']!r}, the world_model "
+                          f"settings give {model.rssm.feature_dim}; re-export the checkpoint")
     if diverged := non_finite(tensors):
         raise ExportError(f"{weights_path}: {diverged[0]} holds NaN or inf ({len(diverged)} tensors do): the checkpoint "
                           "it was exported from had diverged; export an earlier checkpoint of that fit")

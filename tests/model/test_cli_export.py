@@ -480,6 +480,25 @@ def test_shards_of_another_frame_size_are_refused_by_fit_and_analyze(built_shard
     assert err.count(f"{shards} holds 32×32 frames; the world model reads 64×64") == 2 and "Traceback" not in err
 
 
+@pytest.mark.parametrize("field, value, message", [
+    ("normalisation", {"formula": "x / 255", "scale": 1 / 255, "offset": 0.0}, "image normalisation .* differs from"),
+    ("image_shape", [3, 96, 96], r"image_shape \[3, 96, 96\] differs from the \[3, 64, 64\]"),
+    ("kind", "some-other-model", "kind 'some-other-model', not a hauwm-pretrained-world-model"),
+])
+def test_analyze_refuses_an_export_made_for_other_frames(built_shards, tiny_export, tmp_path, capsys, field, value,
+                                                          message):
+    """The frames analyze feeds in are pre-training's (64×64, x / 255 − 0.5); an export that says it reads others
+    was evaluated as if it did not, and its figures were silently wrong."""
+    export = shutil.copytree(tiny_export, tmp_path / "export")
+    config = json.loads((export / "config.json").read_text())
+    (export / "config.json").write_text(json.dumps({**config, field: value}))
+    assert main(["analyze", "--model", str(export), "--shards", str(built_shards), "--out", str(tmp_path / "a"),
+                 "--batches", "1", "--batch-size", "2", "--seq-len", "8"]) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err) and str(export / "config.json") in err and "Traceback" not in err
+    assert not (tmp_path / "a").exists()
+
+
 def test_analyze_writes_plots_and_figures(built_shards, tiny_export, tmp_path, capsys):
     out = tmp_path / "analysis"
     args = ["analyze", "--model", str(tiny_export), "--model", str(tiny_export), "--shards", str(built_shards),
