@@ -151,13 +151,17 @@ def settings_before_they_existed(paradigm: str) -> dict[str, object]:
     return before
 
 
-def read_state(path: Path, cfg: FinetuneConfig, fingerprint: Fingerprint,
-               remedy: str = "restore it, or train in another --logdir") -> dict:
+def read_state(path: Path, cfg: FinetuneConfig, fingerprint: Fingerprint, remedy: str | None = None,
+               training: bool = True) -> dict:
     """What save_checkpoint wrote to `path` (checkpoint.pt or best.pt), checked to be of this run: the same export,
     the same dataset (of the keys in `fingerprint`; a checkpoint that predates one is not checked for it) and the
-    settings that shape the agent; a FinetuneError naming the file (and `remedy` if it cannot be read).
+    settings that shape the agent; a FinetuneError naming the file (and `remedy` if it cannot be read). `training`:
+    read to train on (a resume), so training in another --logdir is a way out; otherwise read to play the agent
+    (evaluate, collect), whose settings are the run's config.yaml.
     Read onto the CPU whatever the agent's device: loading the weights and optimizer states copies them to it,
     and torch.set_rng_state takes a CPU tensor only."""
+    anew = ", or train in another --logdir" if training else ""
+    remedy = remedy or f"restore it{anew}"
     try:
         state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)  # best.pt at start: counters only
     except Exception as err:
@@ -169,11 +173,12 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: Fingerprint,
                *settings_before_they_existed(cfg.paradigm))
     if differing := differing_settings(cfg, state["config"], shaping):
         key, written = differing[0]
-        raise FinetuneError(f"{path} was written by a run with {key}={written!r}, this run has "
-                            f"{key}={getattr(cfg, key)!r}: use another --logdir or the same settings")
+        asked = (f"this run has {key}={getattr(cfg, key)!r}: use the same settings{anew}" if training else
+                 f"{Path(cfg.logdir) / 'config.yaml'} says {key}={getattr(cfg, key)!r}: restore the run's config.yaml")
+        raise FinetuneError(f"{path} was written by a run with {key}={written!r}, {asked}")
     if state["export_sha256"] != fingerprint["export_sha256"]:
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
-                            "pass the export it was trained on (or, to train anew, another --logdir)")
+                            "pass the export it was trained on" + (" (or, to train anew, another --logdir)" * training))
     if (dataset := fingerprint.get("dataset_sha256")) is not None and state.get("dataset_sha256", dataset) != dataset:
         flag, dataset_id = cfg.training_data
         raise FinetuneError(f"{path} was trained on another version of {flag} {dataset_id} (its files' sha256 "
@@ -243,8 +248,9 @@ def refuse_other_run(cfg: FinetuneConfig) -> None:
 def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: Fingerprint,
                     rng: np.random.Generator | None = None, resuming: bool = False) -> dict[str, float]:
     """Restore `agent` (weights, optimizers), torch's and `rng`'s states from `path`; -> its counters. `resuming`:
-    `cfg` goes on training it, so only RESUMABLE settings may differ from those it was trained with."""
-    state = read_state(path, cfg, fingerprint)
+    `cfg` goes on training it, so only RESUMABLE settings may differ from those it was trained with; otherwise the
+    agent is played (evaluate, collect)."""
+    state = read_state(path, cfg, fingerprint, training=resuming)
     if resuming:
         refuse_changed_settings(cfg, state["config"], path)
     missing, unexpected = agent.load_state_dict(state["agent"], strict=False)

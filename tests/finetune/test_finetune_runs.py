@@ -136,6 +136,11 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     other = export_frozen(WorldModel(export_sizes), tmp_path / "other-export")
     assert main(run + ["--pretrained", str(other)]) == 2
     assert "another --pretrained export" in capsys.readouterr().err
+    evaluate = ["evaluate", str(logdir), "--episodes", "1", "--no-progress"]
+    assert main(evaluate + ["--pretrained", str(other)]) == 2  # what to do about it, and no training advice
+    err = capsys.readouterr().err
+    assert "was trained on another --pretrained export (weights sha256 differs): pass the export it was trained on" \
+        in err and "--logdir" not in err
     checkpoint = logdir / CHECKPOINT
     written = (logdir / "config.yaml").read_text()
     checkpoint.rename(tmp_path / "aside.pt")  # a run stopped before its first checkpoint: config.yaml and replay/ only
@@ -148,6 +153,9 @@ def test_resume_with_another_task_or_export_is_refused(export_dir, export_sizes,
     assert main(run + ["--pretrained", str(export_dir)]) == 2
     err = capsys.readouterr().err
     assert f"{checkpoint} cannot be read (it is truncated or not a checkpoint" in err and "Traceback" not in err
+    assert main(evaluate + ["--pretrained", str(export_dir)]) == 2
+    err = capsys.readouterr().err
+    assert f"{checkpoint} cannot be read (it is truncated or not a checkpoint" in err and "--logdir" not in err
     torch.save({"state_dict": {}, "epoch": 3}, checkpoint)  # another program's file, which torch reads
     assert main(run + ["--pretrained", str(export_dir)]) == 2
     err = capsys.readouterr().err  # a KeyError's traceback before
