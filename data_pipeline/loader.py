@@ -145,6 +145,14 @@ def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -
         raise LoaderError(f"{len(missing)} of the {len(urls)} {split} shards listed in "
                           f"{Path(directory) / MANIFEST_FILE} are missing, e.g. {missing[0]}: copy them back, or "
                           f"{VERIFY_HINT}")
+    # a stat per shard, not a checksum (`inspect --verify`); a tar's size steps by 10 KiB, so a shard of other clips
+    # may still pass, to be found by the worker that reads it (`SequenceDataset._passes`)
+    sizes = [] if shard_url else [(url, Path(url).stat().st_size, s["bytes"]) for url, s in zip(urls, shards)]
+    if other := [(url, size, listed) for url, size, listed in sizes if size != listed]:
+        url, size, listed = other[0]
+        raise LoaderError(f"{len(other)} of the {len(urls)} {split} shards listed in {Path(directory) / MANIFEST_FILE} "
+                          f"are not the files it lists, e.g. {url}: {size} bytes, listed as {listed} (a partial copy, "
+                          f"or another shard in its place); {VERIFY_HINT}")
     counts = [{int(frames): n for frames, n in s["frame_counts"].items()} for s in shards]
     return ShardSet(split, urls, counts, manifest["settings"]["size"])  # sizes the workers' batch slots
 
@@ -309,7 +317,8 @@ class SequenceDataset(IterableDataset):
         new shard order, shuffled through the buffer within the pass, so no clip repeats before every clip of
         the stream has come once. A pass that gives fewer sequences than the manifest promises for these shards
         is an error (they are not the shards it describes); without it, a stream of shards that give none would
-        spin forever."""
+        spin forever; one that gives more is another shard in its place (whose size `shard_set` could not tell).
+        """
         while True:
             order = [urls[i] for i in rng.permutation(len(urls))] if self.shuffle else urls
             samples = shard_samples(self._sources(order, worker))
@@ -320,12 +329,12 @@ class SequenceDataset(IterableDataset):
             for sequence in filter(None, (to_sequence(sample, self.seq_len, self.k_max, rng) for sample in samples)):
                 given[sequence["url"]] += 1
                 yield sequence
-            short = [f"{url} gave {given[url]} where the manifest counts {self.clips_in[url]}"
-                     for url in urls if given[url] < self.clips_in[url]]
-            if short:
+            differing = [f"{url} gave {given[url]} where the manifest counts {self.clips_in[url]}"
+                         for url in urls if given[url] != self.clips_in[url]]
+            if differing:
                 raise LoaderError(f"shards are not the ones manifest.json describes (replaced, truncated or copied from "
                                   f"another build); clips of at least seq_len={self.seq_len} frames: "
-                                  f"{'; '.join(short)}; {VERIFY_HINT}")
+                                  f"{'; '.join(differing)}; {VERIFY_HINT}")
 
     def __iter__(self) -> Iterator[dict | LoaderError]:
         """This worker's batches of the epoch (and, `continuous`, of the epochs after it). A DataLoader takes

@@ -26,13 +26,25 @@ TINY_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "pretrain" / "ti
 
 
 def copy_with_broken_shard(built_shards, tmp_path, break_shard) -> tuple:
-    """A copy of the shard directory whose train-000001.tar `break_shard(path)` rewrites (the manifest unchanged)."""
+    """A copy of the shard directory whose train-000001.tar `break_shard(path)` rewrites, its manifest listing the
+    new file's size (as if damaged where its size does not show: what the loader finds only when it reads it)."""
     copy = tmp_path / "shards"
     shutil.copytree(built_shards, copy)
     broken = copy / "train-000001.tar"
     broken.chmod(0o644)
     break_shard(broken)
+    edit_manifest_entry(copy, broken.name, bytes=broken.stat().st_size if broken.exists() else 0)
     return copy, broken
+
+
+def edit_manifest_entry(shards: Path, name: str, **changes) -> None:
+    """Change the manifest's entry of shard `name`."""
+    manifest = json.loads((shards / "manifest.json").read_text())
+    for split in manifest["splits"].values():
+        for entry in split["shards"]:
+            if entry["name"] == name:
+                entry.update(changes)
+    (shards / "manifest.json").write_text(json.dumps(manifest))
 
 
 def truncate(shard) -> None:
@@ -100,6 +112,46 @@ def test_a_shard_with_fewer_clips_than_the_manifest_says_is_an_error_not_a_hang(
     with pytest.raises(LoaderError, match=rf"shards are not the ones manifest.json describes .* clips of at least "
                                           rf"seq_len=8 frames: {broken} gave 0 where the manifest counts [1-9]; check .*--verify"):
         for epoch in range(4):  # every epoch that needs a second pass over the emptied shard's stream finds out
+            dataset.set_epoch(epoch)
+            list(make_dataloader(dataset))
+
+
+@pytest.mark.parametrize("damage", ["another shard in its place", "a partial copy"])
+def test_a_shard_of_another_size_than_the_manifest_lists_is_named_before_any_worker_starts(built_shards, tmp_path,
+                                                                                           damage):
+    """A train shard copied over a validation one (more clips than the manifest counts) was read as validation data
+    without a word; a partial copy was met by a worker, possibly hours into the fit."""
+    shards = shutil.copytree(built_shards, tmp_path / "shards")
+    shard = shards / "validation-000000.tar"
+    shard.chmod(0o644)
+    listed = shard.stat().st_size
+    if damage == "a partial copy":
+        shard.write_bytes(shard.read_bytes()[: listed // 2])
+    else:
+        largest = max(shards.glob("train-*.tar"), key=lambda train: train.stat().st_size)
+        shard.write_bytes(largest.read_bytes())
+        assert shard.stat().st_size != listed
+    with pytest.raises(LoaderError, match=rf"^1 of the \d+ validation shards listed in {shards / 'manifest.json'} are "
+                                          rf"not the files it lists, e.g. {shard}: {shard.stat().st_size} bytes, listed "
+                                          rf"as {listed} \(a partial copy, or another shard in its place\); check"):
+        shard_set(shards, "validation")
+
+
+def test_a_shard_with_more_clips_than_the_manifest_says_is_an_error(built_shards, tmp_path):
+    """A shard of the size listed (a tar's size steps by 10 KiB) but other clips, more of them: read without a word.
+    Found at the end of a pass over the stream's shards (with 2 streams, within the first epochs)."""
+    shards = shutil.copytree(built_shards, tmp_path / "shards")
+    name = "train-000001.tar"
+    entry = next(entry for entry in json.loads((shards / "manifest.json").read_text())["splits"]["train"]["shards"]
+                 if entry["name"] == name)
+    frames, clips = max(entry["frame_counts"].items())
+    counts = {**entry["frame_counts"], frames: clips - 1, "3": 1}  # one clip listed as too short for seq_len 8
+    edit_manifest_entry(shards, name, frame_counts={key: n for key, n in counts.items() if n})
+    dataset = SequenceDataset(shard_set(shards, "train"), batch_size=2, seq_len=8, num_workers=2)
+    with pytest.raises(LoaderError, match=rf"shards are not the ones manifest.json describes .* clips of at least "
+                                          rf"seq_len=8 frames: {shards / name} gave (\d+) where the manifest counts "
+                                          rf"(?!\1)\d+; check .*--verify"):
+        for epoch in range(4):
             dataset.set_epoch(epoch)
             list(make_dataloader(dataset))
 
