@@ -58,9 +58,10 @@ def load_labels(annotations: Path) -> dict[str, int]:
     if not isinstance(labels, dict):
         raise AnnotationError(f"{path}: expected an object mapping class names to indices")
     for name, index in labels.items():  # SSv2 writes the indices as strings of digits
-        if isinstance(index, bool) or not (isinstance(index, int) or isinstance(index, str) and index.isdigit()):
-            raise AnnotationError(f"{path}: class {name!r} has index {index!r}; an index must be a whole number "
-                                  "(or a string of digits, as SSv2 writes them)")
+        if isinstance(index, bool) or not (isinstance(index, int) and index >= 0 or isinstance(index, str)
+                                           and index.isascii() and index.isdigit()):
+            raise AnnotationError(f"{path}: class {name!r} has index {index!r}; an index must be a whole number ≥ 0 "
+                                  "(or a string of the digits 0-9, as SSv2 writes them)")
     indices = {name: int(index) for name, index in labels.items()}
     class_of: dict[int, str] = {}
     for name, index in indices.items():
