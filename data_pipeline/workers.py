@@ -144,7 +144,10 @@ class DecodePool:
         while True:
             for worker in self.workers:  # keep idle workers busy, within the window after next_out
                 if worker.job is None and upcoming is not None and upcoming[0] < next_out + window:
-                    worker.submit(*upcoming, self.timeout)
+                    try:
+                        worker.submit(*upcoming, self.timeout)
+                    except OSError:  # it died while idle (the OOM killer, a user): the clip goes to a fresh one
+                        self._replace(worker).submit(*upcoming, self.timeout)
                     upcoming = next(jobs, None)
             while next_out in done:
                 yield done.pop(next_out)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import errno
 import importlib
 import os
+import select
 import signal
 import sys
 
@@ -64,6 +65,16 @@ def path_problem(err: OSError, stage: str) -> str:
     return f"{path}: {err.strerror}: check the path and its permissions"
 
 
+def stdout_gone() -> bool:
+    """Whether stdout is a pipe whose reader has gone: poll(2) reports an error on the write end of such a pipe."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & select.POLLERR for _, events in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # no file descriptor (a test's captured output), or one closed
+        return False
+
+
 def out_of_memory(err: BaseException) -> bool:
     """torch's OutOfMemoryError (CUDA), a host allocation torch or numpy could not make (without importing either)."""
     return isinstance(err, MemoryError) or type(err).__name__ == "OutOfMemoryError" or (
@@ -98,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nhauwm {stage}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # as a command killed by SIGPIPE ends, without a traceback
+        if not stdout_gone():  # a pipe of the stage's own (to a process that died): an error, not `| head`
+            raise
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter's last flush goes nowhere
         return 128 + signal.SIGPIPE
     except OSError as err:  # a path a stage could not make, read or write: one line naming it, not a traceback

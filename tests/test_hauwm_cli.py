@@ -43,6 +43,19 @@ def test_output_piped_into_a_reader_that_has_gone_ends_quietly(tmp_path, args):
     assert result.returncode == 141 and result.stderr == ""
 
 
+def test_a_broken_pipe_that_is_not_stdout_is_not_taken_for_a_reader_that_has_gone(monkeypatch):
+    """A pipe to a worker process that died (the shard build's decoders had one) ended the command with exit status
+    141 and no word, as `| head` does; it is an error of its own, with its traceback."""
+    def stage(name):
+        def main(argv):
+            raise BrokenPipeError(errno.EPIPE, "Broken pipe")
+        return types.SimpleNamespace(main=main)
+
+    monkeypatch.setattr(importlib, "import_module", stage)
+    with pytest.raises(BrokenPipeError):
+        main(["shards", "build"])
+
+
 def test_an_output_path_where_a_file_is_is_named_in_one_line(tmp_path, capsys):
     (tmp_path / "taken").write_text("")
     assert main(["shards", "sample-data", "--out", str(tmp_path / "taken" / "ssv2"), "--clips", "3"]) == 2

@@ -101,6 +101,20 @@ def test_a_hanging_decoder_is_killed_and_the_build_goes_on(sample_ssv2, clean_an
     assert manifest["splits"]["validation"]["clips"] == 2 and status == 0
 
 
+def test_a_decoder_that_died_between_clips_is_replaced_and_its_next_clip_decoded(sample_ssv2, clean_annotations):
+    """A decoder killed while idle (the OOM killer, a user) made the next clip's send raise BrokenPipeError, which
+    ended the build with exit status 141 and no word, as if its stdout had been closed."""
+    entries = json.loads((clean_annotations / "something-something-v2-validation.json").read_text())
+    paths = [next((sample_ssv2 / "videos").glob(f"{entry['id']}.*")) for entry in entries]
+    settings = workers.DecodeSettings(size=64, resize="squash", min_frames=8, encoding="jpeg", quality=90)
+    with workers.DecodePool(2, settings, timeout=60.0) as pool:
+        idle = pool.workers[1].process
+        idle.kill()
+        idle.join()
+        results = list(pool.imap(paths))
+    assert [result.reason for result in results] == [""] * len(paths) and all(r.num_frames for r in results)
+
+
 def test_clips_that_decord_cannot_open_are_decoded_by_opencv_and_counted(sample_ssv2, clean_annotations, tmp_path,
                                                                         monkeypatch):
     real = decode._decode_decord
