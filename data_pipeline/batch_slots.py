@@ -62,11 +62,12 @@ class BatchSlots:
         _ALL_SLOTS[self.key] = self
 
     def place(self, worker: int) -> tuple[int, torch.Tensor] | None:
-        """A worker's next slot, (its index, its bytes) once free; None if it stays taken for SLOT_WAIT seconds."""
+        """A worker's next slot, (its index, its bytes) once free; None if it stays taken for SLOT_WAIT seconds (the
+        next batch tries the slot after it)."""
         slot = self._placed % len(self.semaphores[worker])
+        self._placed += 1
         if not self.semaphores[worker][slot].acquire(timeout=SLOT_WAIT):
             return None
-        self._placed += 1
         return slot, self.buffer[worker, slot]
 
     def vacate(self, worker: int, slot: int) -> None:

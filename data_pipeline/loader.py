@@ -361,12 +361,12 @@ class SequenceDataset(IterableDataset):
         groups = wds.batched(self.batch_size, collation_fn=None, partial=False)(remaining)
         return map(self._handed_over, islice(groups, max(0, self.batches_per_worker - skipped)))
 
-    def share_slots(self, per_worker: int, context: BaseContext) -> None:
-        """Give each DataLoader worker `per_worker` shared-memory slots to place its batches in (batch_slots.py);
-        before the workers start (with `context`), once (the loaders of one dataset share them: each slot has
-        its semaphore). A LoaderError if the shared memory has no room for them."""
-        if self._slots is not None:
-            return
+    def share_slots(self, per_worker: int, context: BaseContext) -> BatchSlots:
+        """Give each DataLoader worker that starts next (with `context`) `per_worker` shared-memory slots to place
+        its batches in (batch_slots.py); new ones for every loader, since batches that the workers of an earlier
+        loader placed and nobody received (it ended with batches in flight) keep their slots taken. -> the slots, which
+        the loader keeps alive in this process for its batches to be copied out. A LoaderError if the shared memory
+        has no room for them."""
         _, slot_bytes = block_bytes(self.batch_size, self.seq_len, self.frame_size, self.frame_size)
         needed, room = self.workers * per_worker * slot_bytes, shared_memory_free()
         if room is not None and needed > room:
@@ -375,6 +375,7 @@ class SequenceDataset(IterableDataset):
                               "Docker run with --shm-size 8g (or --ipc=host), or lower --data.num_workers or "
                               "--data.batch_size")
         self._slots = BatchSlots(self.workers, per_worker, slot_bytes, context)
+        return self._slots
 
     def _handed_over(self, sequences: list[dict]) -> dict | SlotBatch:
         """In a DataLoader worker with slots, the batch written into the worker's next slot, to travel as a
@@ -493,6 +494,7 @@ class ResumableDataLoader(DataLoader):
     batches_done: Callable[[], int] = staticmethod(lambda: 0)
     epoch_ended: Callable[[], bool] = staticmethod(lambda: False)  # the epoch's last batch is done (a limit too)
     worker_priority: str = "normal"  # set by `make_dataloader`, for the stalled-worker message
+    slots: BatchSlots | None = None  # where this loader's workers place their batches (`make_dataloader`)
     _stream: Iterator[dict | LoaderError] | None = None  # torch's iterator of a continuous dataset, over the epochs
     _stream_at: tuple[int, int] = (-1, 0)  # the (epoch, batches of it) `_stream` gives next
 
@@ -649,5 +651,5 @@ def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0, worker_pri
                                  prefetch_factor=PREFETCH if workers else None)
     loader.worker_priority = worker_priority
     if workers:  # the context torch starts the workers with (its default: the platform's)
-        dataset.share_slots(PREFETCH + 1, loader.multiprocessing_context or multiprocessing.get_context())
+        loader.slots = dataset.share_slots(PREFETCH + 1, loader.multiprocessing_context or multiprocessing.get_context())
     return loader
