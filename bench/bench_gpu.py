@@ -68,7 +68,8 @@ sys.path.insert(0, str(ROOT))
 
 from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.datamodule import ShardDataModule  # noqa: E402
-from data_pipeline.loader import WORKER_PRIORITIES, SequenceDataset, shard_set  # noqa: E402
+from data_pipeline.dataloader import WORKER_PRIORITIES  # noqa: E402
+from data_pipeline.dataset import SequenceDataset, shard_set  # noqa: E402
 from data_pipeline.shard_format import MANIFEST_FILE, ShardDirError, read_manifest  # noqa: E402
 from model.lightning_cli import lightning_cli  # noqa: E402
 from model.config import WorldModelConfig  # noqa: E402

@@ -40,7 +40,8 @@ from torch.utils.data import DataLoader  # noqa: E402
 from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.build import BuildConfig, build  # noqa: E402
 from data_pipeline.batch_slots import SlotBatch  # noqa: E402
-from data_pipeline.loader import SequenceDataset, _init_worker, make_dataloader, shard_set  # noqa: E402
+from data_pipeline.dataloader import _init_worker, make_dataloader  # noqa: E402
+from data_pipeline.dataset import SequenceDataset, shard_set  # noqa: E402
 from data_pipeline.sample_data import make_sample_data  # noqa: E402
 from data_pipeline.shard_format import read_manifest  # noqa: E402
 

@@ -7,8 +7,8 @@ The names below import lazily, so the shard-building CLI does not load torch and
 
 from importlib import import_module
 
-_EXPORTS = {"SetEpoch": "datamodule", "ShardDataModule": "datamodule", "LoaderError": "loader", "ShardDirError": "shard_format",
-            "SequenceDataset": "loader", "collate": "loader", "make_dataloader": "loader", "shard_set": "loader",
+_EXPORTS = {"SetEpoch": "datamodule", "ShardDataModule": "datamodule", "LoaderError": "dataset", "ShardDirError": "shard_format",
+            "SequenceDataset": "dataset", "collate": "dataset", "make_dataloader": "dataloader", "shard_set": "dataset",
             "sample_indices": "sampling"}
 __all__ = list(_EXPORTS)
 

@@ -2,12 +2,12 @@
 reshuffles the shards every epoch (Lightning does not call `set_epoch` on an IterableDataset).
 
 Train: shards shuffled with `seed + epoch`, split by rank and worker, a shuffle buffer, and the same
-number of batches on every rank (see `loader.py`). Validation: a fixed order and a fixed seed, so
+number of batches on every rank (see `dataset.py`). Validation: a fixed order and a fixed seed, so
 every evaluation sees the same `val_batches` batches (rounded down to a multiple of the workers, at least
 one per worker) with the same gaps, for the per-k metrics the model computes from `gaps`. Which sequences
 those are depends on the number of validation streams (ranks × workers): compare validation figures between
 runs with the same `--data.num_workers` and devices. The workers of both loaders start
-once and stay for the whole fit (see `loader.py` for how they follow the epoch).
+once and stay for the whole fit (see `dataloader.py` for how they follow the epoch).
 
     trainer = lightning.Trainer(callbacks=[SetEpoch()])
     trainer.fit(model, datamodule=ShardDataModule("demo-out/shards", batch_size=8))
@@ -23,8 +23,8 @@ from lightning.pytorch.utilities import rank_zero_info
 
 from hauwm.arguments import MAX_TIMEOUT
 
-from .loader import (LoaderError, SequenceDataset, check_shard_url, check_worker_priority, make_dataloader,
-                     shard_set)
+from .dataloader import check_worker_priority, make_dataloader
+from .dataset import LoaderError, SequenceDataset, check_shard_url, shard_set
 from .sampling import gap_range_note, gaps_beyond_clips
 from .shard_format import read_manifest
 

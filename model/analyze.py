@@ -21,7 +21,7 @@ import torch
 from matplotlib.figure import Figure  # no pyplot: no GUI backend, no global figure state
 from tqdm import tqdm
 
-from data_pipeline.loader import SequenceDataset, shard_set
+from data_pipeline.dataset import SequenceDataset, shard_set
 from data_pipeline.sampling import gap_range_note, gaps_beyond_clips
 from hauwm.atomic import written_whole
 from model.config import ConfigError

@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print(f"usage:\n{USAGE}")
         return 0
-    from data_pipeline.loader import LoaderError
+    from data_pipeline.dataset import LoaderError
     from data_pipeline.shard_format import ShardDirError
     from model.export import ExportError
     from model.interrupt import FitInterrupted

@@ -12,8 +12,8 @@ from torch.utils.data import DataLoader
 
 from data_pipeline import batch_slots
 from data_pipeline.batch_slots import SlotBatch, batch_views, block_bytes
-from data_pipeline.loader import (PREFETCH, LoaderError, ResumableDataLoader, SequenceDataset, make_dataloader,
-                                  shard_set)
+from data_pipeline.dataloader import PREFETCH, ResumableDataLoader, make_dataloader
+from data_pipeline.dataset import LoaderError, SequenceDataset, shard_set
 
 from test_loader import summary  # noqa: I001 (tests/data_pipeline/test_loader.py)
 
@@ -91,7 +91,7 @@ def test_a_new_loader_of_the_same_dataset_hands_over_in_slots_of_its_own(built_s
 
 
 def test_shared_memory_too_small_for_the_slots_is_refused_at_the_start(built_shards, monkeypatch):
-    monkeypatch.setattr("data_pipeline.loader.shared_memory_free", lambda: 2**20)
+    monkeypatch.setattr("data_pipeline.dataset.shared_memory_free", lambda: 2**20)
     with pytest.raises(LoaderError, match=r"need \d+ MiB of shared memory .* 1 MiB free: .*--shm-size"):
         make_dataloader(SequenceDataset(shard_set(built_shards, "train"), batch_size=32, seq_len=8, num_workers=2,
                                         batches_per_worker=1))

@@ -20,8 +20,8 @@ from scipy.stats import chisquare
 from torch.utils.data import DataLoader
 
 from data_pipeline import SetEpoch, ShardDataModule
-from data_pipeline.loader import (LoaderError, ResumableDataLoader, SequenceDataset, ShardSet, make_dataloader,
-                                  shard_set)
+from data_pipeline.dataloader import ResumableDataLoader, make_dataloader
+from data_pipeline.dataset import LoaderError, SequenceDataset, ShardSet, shard_set
 from data_pipeline.shard_format import ShardDirError, decode_frames, read_samples
 from model.checkpointing import LastStepCheckpoint
 

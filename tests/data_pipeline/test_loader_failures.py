@@ -16,7 +16,8 @@ import pytest
 import torch
 
 from data_pipeline import SetEpoch, ShardDataModule
-from data_pipeline.loader import LoaderError, SequenceDataset, make_dataloader, shard_set
+from data_pipeline.dataloader import make_dataloader
+from data_pipeline.dataset import LoaderError, SequenceDataset, shard_set
 from data_pipeline.shard_format import add_clip, open_writer
 
 from test_loader import RecordingModel  # noqa: I001 (tests/data_pipeline/test_loader.py)

@@ -69,6 +69,6 @@ class LoaderFailsOnRankOne(L.Callback):
 
     def on_train_batch_start(self, trainer: L.Trainer, *_) -> None:
         if trainer.global_rank == 1 and trainer.global_step == 2:
-            from data_pipeline.loader import LoaderError
+            from data_pipeline.dataset import LoaderError
 
             raise LoaderError("shard train-000001.tar of rank 1 is damaged (a test's)")

@@ -213,7 +213,7 @@ def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, 
 
 
 def test_shared_memory_too_small_for_the_loader_is_refused_in_one_line(built_shards, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("data_pipeline.loader.shared_memory_free", lambda: 2**19)
+    monkeypatch.setattr("data_pipeline.dataset.shared_memory_free", lambda: 2**19)
     assert fit(built_shards, tmp_path, "--data.num_workers", "1", "--trainer.max_steps", "1") == 2
     err = capsys.readouterr().err
     assert "/dev/shm has 0 MiB free: in Docker run with --shm-size" in err and "Traceback" not in err

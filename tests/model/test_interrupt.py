@@ -15,7 +15,7 @@ import lightning
 import pytest
 import torch
 
-from data_pipeline.loader import LoaderError
+from data_pipeline.dataset import LoaderError
 from model.interrupt import ResumeNotice
 from model.progress import StepProgressBar
 
