@@ -49,6 +49,7 @@ import numpy as np
 import torch
 import webdataset as wds
 from torch.utils.data import IterableDataset, get_worker_info
+from webdataset.gopen import Pipe
 from webdataset.utils import pytorch_worker_info
 
 from .batch_slots import BatchSlots, SlotBatch, batch_views, block_bytes, shared_memory_free
@@ -139,11 +140,20 @@ def shard_samples(sources: Iterator[dict]) -> Iterator[dict]:
     shard's tar samples `{"__key__", "__url__", "json", "jpgs" | "npy"}`, in clip order."""
     for source in sources:
         stream = wds.gopen(source["url"])
-        for sample in read_samples(stream, source["url"]):
-            sample["__url__"] = source["url"]
-            yield sample
-        stream.read()  # the tar's trailing zero blocks: a `pipe:` command finishes before it is closed
-        stream.close()
+        try:
+            for sample in read_samples(stream, source["url"]):
+                sample["__url__"] = source["url"]
+                yield sample
+            stream.read()  # the tar's trailing zero blocks: a `pipe:` command finishes before it is closed
+        except BaseException:  # cut off (an epoch that ends inside the shard, an error): a command is ended, not
+            if isinstance(stream, Pipe):  # awaited (webdataset's close waits for it to end by itself)
+                stream.proc.kill()
+                stream.stream.close()  # so that its close at collection does nothing
+                stream.proc.wait()
+            else:
+                stream.close()
+            raise
+        stream.close()  # a `pipe:` command's: waited for, and a failure (its exit status) raised
 
 
 def to_sequence(sample: dict, seq_len: int, k_max: int, rng: np.random.Generator) -> dict | None:

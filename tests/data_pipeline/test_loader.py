@@ -9,6 +9,7 @@ import os
 import re
 import signal
 import tarfile
+import time
 import warnings
 from collections import Counter
 
@@ -310,6 +311,16 @@ def test_pipe_urls_read_the_same_data(built_shards):
                             batch_size=3, seq_len=8, shuffle=False)
     for a, b in zip(local, piped, strict=True):
         assert a["id"] == b["id"] and torch.equal(a["frames"], b["frames"])
+
+
+def test_a_pipe_shard_cut_off_at_an_epochs_end_ends_its_command_at_once(built_shards):
+    """An epoch that ends inside a shard left its `pipe:` command to the garbage collector, whose close waited for the
+    command to end by itself (here, 60 s of a command that stalls; `aws s3 cp` in the middle of a download)."""
+    stalling = shard_set(built_shards, "train", shard_url=f"pipe:cat {built_shards}/{{name}}; sleep 60")
+    dataset = SequenceDataset(stalling, batch_size=2, seq_len=8, shuffle=False, batches_per_worker=1)
+    started = time.monotonic()
+    assert len(list(dataset)) == 1  # 2 of the first shard's 4 clips
+    assert time.monotonic() - started < 30
 
 
 def test_too_few_shards_or_clips_give_clear_errors(built_shards, monkeypatch):
