@@ -21,6 +21,7 @@ from __future__ import annotations
 import multiprocessing
 import multiprocessing.connection
 import os
+import re
 import signal
 import threading
 import warnings
@@ -164,7 +165,8 @@ class ResumableDataLoader(DataLoader):
         if self._stream is None or at != self._stream_at:
             # torch counts an iterator's batches against len(loader) and warns past it: this one gives len batches
             # per epoch, epoch after epoch, by design
-            warnings.filterwarnings("ignore", message=r"Length of IterableDataset <data_pipeline\.loader\.SequenceDataset")
+            warnings.filterwarnings("ignore", message="Length of IterableDataset <" + re.escape(
+                f"{SequenceDataset.__module__}.{SequenceDataset.__name__}"))
             self._stream, self._stream_at = self._started(), at
         return self._rest_of_epoch()
 

@@ -177,8 +177,9 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: Fingerprint, remedy
                  f"{Path(cfg.logdir) / 'config.yaml'} says {key}={getattr(cfg, key)!r}: restore the run's config.yaml")
         raise FinetuneError(f"{path} was written by a run with {key}={written!r}, {asked}")
     if state["export_sha256"] != fingerprint["export_sha256"]:
+        anew_elsewhere = " (or, to train anew, another --logdir)" if training else ""
         raise FinetuneError(f"{path} was trained on another --pretrained export (weights sha256 differs): "
-                            "pass the export it was trained on" + (" (or, to train anew, another --logdir)" * training))
+                            f"pass the export it was trained on{anew_elsewhere}")
     if (dataset := fingerprint.get("dataset_sha256")) is not None and state.get("dataset_sha256", dataset) != dataset:
         flag, dataset_id = cfg.training_data
         raise FinetuneError(f"{path} was trained on another version of {flag} {dataset_id} (its files' sha256 "

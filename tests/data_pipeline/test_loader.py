@@ -313,6 +313,19 @@ def test_pipe_urls_read_the_same_data(built_shards):
         assert a["id"] == b["id"] and torch.equal(a["frames"], b["frames"])
 
 
+def test_a_continuous_loader_going_on_into_its_next_epochs_does_not_warn(built_shards):
+    """torch warns when an iterator gives more batches than len(loader); the training loader's does, by design."""
+    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=2, continuous=True)
+    loader = make_dataloader(dataset)
+    batches = len(loader)  # as Lightning asks before it iterates (torch compares what an iterator gives with it)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for epoch in range(3):
+            dataset.set_epoch(epoch)
+            assert len(list(loader)) == batches
+    assert not [warning for warning in caught if "Length of IterableDataset" in str(warning.message)]
+
+
 def test_a_pipe_shard_cut_off_at_an_epochs_end_ends_its_command_at_once(built_shards):
     """An epoch that ends inside a shard left its `pipe:` command to the garbage collector, whose close waited for the
     command to end by itself (here, 60 s of a command that stalls; `aws s3 cp` in the middle of a download)."""
