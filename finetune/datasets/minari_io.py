@@ -14,8 +14,9 @@ Dreamer alignment (finetune/replay.py), so `Replay.add` takes it as it is:
     terminal float32 [T+1]            1 at the last entry if the episode ended in a terminal state
 
 Reading accepts datasets made elsewhere too: Box image observations HWC or CHW, or a Dict observation
-with an image entry ("pixels", "image", ...); square-ish images of another size are resized to 64x64
-with OpenCV's INTER_AREA. Every other mismatch is a `DatasetError` naming the dataset and the fix.
+with an image entry ("pixels", "image", ...); square-ish images of another size (32x32 at least) are resized
+to 64x64 with OpenCV's INTER_AREA. Every other mismatch, of the spaces or of an episode's arrays with them, is
+a `DatasetError` naming the dataset (and the episode) and the fix.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from hauwm.pid_lock import LockHeld, lock_holder, pid_lock
 IMAGE_SIZE = 64  # the frames the world model is trained on (model.networks.IMAGE_SHAPE, not imported: it imports torch)
 IMAGE_KEYS = ("pixels", "image", "rgb", "observation", "obs")  # Dict observation entries tried in this order
 MAX_ASPECT = 1.25  # "square-ish": larger/smaller side at most this, else resizing would distort the scene
+MIN_SIDE = 32  # smaller images are refused: blown up to 64x64 they would show nothing the world model has seen
 METADATA_KEY = "hauwm"  # our settings in the dataset's metadata.json (task, source, env settings)
 ID_EXAMPLE = "hauwm/drawer_close-expert-v0"
 
@@ -217,9 +219,17 @@ class ImageView:
     height: int
     width: int
 
-    def frames(self, observations) -> np.ndarray:
-        """observations of one episode -> uint8 [T+1, 3, 64, 64]."""
+    def frames(self, observations, where: str) -> np.ndarray:
+        """observations of one episode -> uint8 [T+1, 3, 64, 64]; a DatasetError naming `where` (the dataset and
+        the episode) where they are not frames of the observation space (the space is checked once, each episode
+        here)."""
         images = np.asarray(observations if self.key is None else observations[self.key])
+        frame = (3, self.height, self.width) if self.channels_first else (self.height, self.width, 3)
+        if images.dtype != np.uint8 or images.shape[1:] != frame:
+            name = "observations" if self.key is None else f"observations/{self.key}"
+            raise DatasetError(f"{where}: {name} are {images.dtype} {list(images.shape)}, the dataset's observation "
+                               f"space says uint8 [T+1, {', '.join(map(str, frame))}]: the episode was not written as "
+                               "its dataset declares; write the dataset again")
         if self.channels_first:
             images = images.transpose(0, 2, 3, 1)  # [T+1, H, W, 3]
         if (self.height, self.width) != (IMAGE_SIZE, IMAGE_SIZE):
@@ -247,6 +257,10 @@ def image_view(dataset_id: str, space: gymnasium.Space) -> ImageView:
                            f"frames shaped (H, W, 3) or (3, H, W), ideally {IMAGE_SIZE}x{IMAGE_SIZE}); collect pixel "
                            "observations, e.g. with `hauwm datasets collect`")
     channels_first, height, width = layout
+    if min(height, width) < MIN_SIDE:
+        raise DatasetError(f"dataset {dataset_id!r}: images are {height}x{width}, smaller than {MIN_SIDE}x{MIN_SIDE}: "
+                           f"blown up to {IMAGE_SIZE}x{IMAGE_SIZE} they would hold no scene the world model knows; "
+                           f"record the episodes at {IMAGE_SIZE}x{IMAGE_SIZE} (e.g. with `hauwm datasets collect`)")
     if max(height, width) > MAX_ASPECT * min(height, width):
         raise DatasetError(f"dataset {dataset_id!r}: images are {height}x{width}, too far from square to resize to "
                            f"{IMAGE_SIZE}x{IMAGE_SIZE} without distorting them (at most {MAX_ASPECT}:1); crop them to a "
@@ -312,7 +326,7 @@ def iterate_episodes(dataset_id: str, task: str | None = None, action_dim: int |
         except (KeyError, OSError, ValueError) as error:  # a missing array or a damaged file, raised by h5py
             raise DatasetError(f"dataset {dataset_id!r}: episode {index} could not be read "
                                f"({type(error).__name__}: {error}); the dataset is damaged, write it again") from None
-        yield _to_replay_layout(dataset_id, int(index), raw, view)
+        yield _to_replay_layout(f"dataset {dataset_id!r}, episode {index}", raw, view, dataset.action_space.shape[0])
         bar.update()
     bar.close()
 
@@ -323,8 +337,8 @@ def load_episodes(dataset_id: str, task: str | None = None, action_dim: int | No
     return list(iterate_episodes(dataset_id, task, action_dim, progress))
 
 
-def _to_replay_layout(dataset_id: str, index: int, raw: dict[str, Any], view: ImageView) -> dict[str, np.ndarray]:
-    where = f"dataset {dataset_id!r}, episode {index}"
+def _to_replay_layout(where: str, raw: dict[str, Any], view: ImageView, action_dim: int) -> dict[str, np.ndarray]:
+    """One episode as Minari stores it -> the replay's layout, each array checked; `where` names the episode."""
     rewards, actions = raw.get("rewards"), raw.get("actions")
     if actions is not None and len(actions) == 0:  # rewards and observations cut with them, as a rule
         raise DatasetError(f"{where} holds no steps (no actions): an episode cut short or never written; write the "
@@ -339,9 +353,13 @@ def _to_replay_layout(dataset_id: str, index: int, raw: dict[str, Any], view: Im
     if not np.all(np.isfinite(rewards)):
         raise DatasetError(f"{where}: rewards are missing (NaN or infinite); write the dataset with real rewards")
     actions = np.asarray(actions, np.float32)
+    if actions.ndim != 2 or actions.shape[1] != action_dim:
+        raise DatasetError(f"{where}: actions are {list(actions.shape)}, the dataset's action space says "
+                           f"[T, {action_dim}]: the episode was not written as its dataset declares; write the dataset "
+                           "again")
     if not np.all(np.isfinite(actions)):  # NaN would pass the bounds check below and train every weight into NaN
         raise DatasetError(f"{where}: actions hold NaN or infinite values; write the dataset with the actions taken")
-    obs = view.frames(raw["observations"])
+    obs = view.frames(raw["observations"], where)
     steps = len(rewards)
     if len(actions) != steps or len(obs) != steps + 1:
         raise DatasetError(f"{where}: {len(obs)} observations, {len(actions)} actions and {steps} rewards; Minari "
@@ -350,18 +368,27 @@ def _to_replay_layout(dataset_id: str, index: int, raw: dict[str, Any], view: Im
         raise DatasetError(f"{where}: actions reach {np.abs(actions).max():.3g}, outside the declared [-1, 1]")
     zero = np.zeros(1, np.float32)
     success = (raw.get("infos") or {}).get("success")
-    success = np.zeros(steps + 1, np.float32) if success is None else np.asarray(success, np.float32).reshape(-1)
+    success = np.zeros(steps + 1) if success is None else np.asarray(success)
+    if not (np.issubdtype(success.dtype, np.number) or success.dtype == bool):
+        raise DatasetError(f"{where}: infos/success holds {success.dtype} values, not numbers (1 where the task was "
+                           "solved, else 0); write the dataset again")
+    success = success.astype(np.float32).reshape(-1)
     if len(success) == steps:  # a per-step flag without the reset entry
         success = np.concatenate([zero, success])
     if len(success) != steps + 1:
         raise DatasetError(f"{where}: infos/success holds {len(success)} entries for {steps} steps")
-    ends = np.asarray(raw["terminations"], bool) | np.asarray(raw["truncations"], bool)
+    terminations, truncations = (np.asarray(raw.get(key, ()), bool).reshape(-1)
+                                 for key in ("terminations", "truncations"))
+    if len(terminations) != steps or len(truncations) != steps:
+        raise DatasetError(f"{where}: terminations hold {len(terminations)} entries, truncations {len(truncations)}, "
+                           f"for {steps} steps; Minari episodes hold one of each a step: write the dataset again")
+    ends = terminations | truncations
     if ends[:-1].any():
         raise DatasetError(f"{where}: it ends at step {np.argmax(ends) + 1} of {steps} (terminations or truncations "
                            "before its last step); a Minari episode ends at its first: split it there and write the "
                            "dataset again")
     terminal = np.zeros(steps + 1, np.float32)
-    terminal[-1] = float(np.asarray(raw["terminations"])[-1])
+    terminal[-1] = float(terminations[-1])
     return {"obs": obs, "action": np.concatenate([np.zeros((1, actions.shape[1]), np.float32), actions]),
             "reward": np.concatenate([zero, rewards]), "success": success, "terminal": terminal}
 

@@ -300,6 +300,11 @@ def test_images_are_found_and_resized_or_refused(capsys):
                                             "state": np.zeros((steps + 1, 5))})
     assert load_episodes("other/dict-v0", progress=False)[0]["obs"].shape == (steps + 1, 3, 64, 64)
 
+    tiny = gymnasium.spaces.Box(0, 255, (3, 3, 3), np.uint8)  # was blown up to 64x64 without a word
+    write_foreign("other/tiny-v0", tiny, np.zeros((steps + 1, 3, 3, 3), np.uint8))
+    with pytest.raises(DatasetError, match=r"images are 3x3, smaller than 32x32: blown up to 64x64 they would hold no "
+                                           r"scene the world model knows"):
+        load_episodes("other/tiny-v0")
     wide = gymnasium.spaces.Box(0, 255, (32, 96, 3), np.uint8)
     write_foreign("other/wide-v0", wide, np.zeros((steps + 1, 32, 96, 3), np.uint8))
     with pytest.raises(DatasetError, match="images are 32x96, too far from square"):
@@ -348,6 +353,34 @@ def test_bad_actions_missing_rewards_and_empty_datasets_are_refused(random_episo
                                            action_space=gymnasium.spaces.Box(-1.0, 1.0, (4,), np.float32))
     with pytest.raises(DatasetError, match="holds no episodes"):
         load_episodes("other/empty-v0")
+
+
+def _replace_array(dataset, name: str, change) -> None:
+    """Replace episode 0's array `name` (e.g. "observations", "infos/success") by `change(array)`."""
+    with h5py.File(dataset.storage.data_path / "main_data.hdf5", "a") as f:
+        array = f[f"episode_0/{name}"][()]
+        del f[f"episode_0/{name}"]
+        f[f"episode_0/{name}"] = change(array)
+
+
+@pytest.mark.parametrize("name, change, message", [
+    ("observations", lambda a: a[:, :, :32], r"observations are uint8 \[21, 64, 32, 3\], the dataset's observation space "
+                                            r"says uint8 \[T\+1, 64, 64, 3\]"),
+    ("observations", lambda a: np.concatenate([a, a[..., :1]], -1), r"observations are uint8 \[21, 64, 64, 4\]"),
+    ("observations", lambda a: a.astype(np.float32), r"observations are float32 \[21, 64, 64, 3\]"),
+    ("actions", lambda a: np.concatenate([a, a[:, :1]], 1), r"actions are \[20, 5\], the dataset's action space says "
+                                                           r"\[T, 4\]"),
+    ("infos/success", lambda a: np.where(a > 0, b"yes", b"no"), r"infos/success holds \|S3 values, not numbers"),
+    ("terminations", lambda a: a[:-3], r"terminations hold 17 entries, truncations 20, for 20 steps"),
+], ids=["narrower", "rgba", "float", "action-width", "success-strings", "terminations-short"])
+def test_an_episode_whose_arrays_differ_from_the_datasets_spaces_is_refused_naming_them(random_episodes, name, change,
+                                                                                       message):
+    """Such episodes were read as they were: training failed deep in the replay (`all input arrays must have the same
+    shape`) or the model (`preprocess expects uint8 frames`), and inspect raised numpy's errors or said nothing."""
+    dataset = write_dataset("test/altered-v0", iter(random_episodes[:1]), {"task": TASK})
+    _replace_array(dataset, name, change)
+    with pytest.raises(DatasetError, match=rf"dataset 'test/altered-v0', episode 0: {message}"):
+        load_episodes("test/altered-v0", task=TASK, action_dim=4, progress=False)
 
 
 def test_a_dataset_of_another_task_is_named_so_before_its_spaces_are_checked(random_episodes):
