@@ -97,8 +97,6 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     below directories not hidden): (every readable dataset's ID -> its metadata; an ID -> a line about its directory:
     why it cannot be read and what to do, or that it is a copy of another dataset, which reads as itself). Done here:
     Minari 0.5's listing stops with a TypeError at a directory not named `name-vN`."""
-    from minari.dataset.minari_storage import MinariStorage
-
     root, datasets, notes = dataset_path(), {}, {}
 
     def visit(directory: Path) -> None:
@@ -111,7 +109,7 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
             dataset_id = child.relative_to(root).as_posix()
             try:
                 check_dataset_id(dataset_id)
-                metadata = MinariStorage.read_raw_metadata(child / "data")
+                metadata = read_metadata(child / "data")
                 if metadata["dataset_id"] != dataset_id:  # a directory copied or moved: its metadata keeps its ID
                     notes[dataset_id] = (f"note: {dataset_id} is a copy of dataset {metadata['dataset_id']} (its "
                                          "data/metadata.json keeps that ID); it is read as the dataset of its directory")
@@ -122,6 +120,19 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     if root.is_dir():
         visit(root)
     return datasets, notes
+
+
+def read_metadata(data: Path) -> dict[str, Any]:
+    """A dataset's data/metadata.json, checked to be an object whose "hauwm" entry (where there is one) is one too; a
+    DatasetError naming the file otherwise (a JSONDecodeError or OSError for a file that cannot be read)."""
+    from minari.dataset.minari_storage import MinariStorage
+
+    metadata = MinariStorage.read_raw_metadata(data)
+    if not isinstance(metadata, dict) or not isinstance(metadata.get(METADATA_KEY, {}), dict):
+        what = (f"its \"{METADATA_KEY}\" entry is {json.dumps(metadata[METADATA_KEY])[:40]}"
+                if isinstance(metadata, dict) else f"it is a JSON {type(metadata).__name__}")
+        raise DatasetError(f"{data / 'metadata.json'}: {what}, not an object")
+    return metadata
 
 
 def list_datasets() -> dict[str, dict[str, Any]]:
@@ -145,10 +156,13 @@ def open_dataset(dataset_id: str):
     if not (dataset_path(dataset_id) / "data").is_dir():
         raise DatasetError(_missing_message(dataset_id))
     try:
+        read_metadata(dataset_path(dataset_id) / "data")
         dataset = minari.load_dataset(dataset_id)
     except ImportError as error:  # a storage format whose extra is not installed, e.g. Arrow
         raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} is stored in a format this "
                            f"installation cannot read ({error})") from None
+    except DatasetError as error:
+        raise DatasetError(f"dataset {dataset_id!r}: {error}; write it again") from None
     except (ValueError, OSError, KeyError, AssertionError, json.JSONDecodeError) as error:
         raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} could not be read by Minari "
                            f"{minari.__version__} ({type(error).__name__}: {error}); a dataset of another Minari "

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import json
 import os
 import re
 import signal
@@ -610,6 +611,24 @@ def test_a_directory_not_named_as_a_dataset_is_listed_apart_not_a_traceback(rand
     assert "damaged: test/kept-backup (dataset ID 'test/kept-backup' is not a Minari ID" in listed.err
     with pytest.raises(DatasetError, match="'test/typo-v0' not found .* the datasets there: test/kept-v0$"):
         load_episodes("test/typo-v0")
+
+
+@pytest.mark.parametrize("damage", [lambda m: {**m, "hauwm": None}, lambda m: {**m, "hauwm": "drawer"}, lambda m: []],
+                         ids=["our-settings-null", "our-settings-text", "a-list"])
+def test_a_metadata_file_of_another_shape_is_named_damaged_and_the_others_listed(random_episodes, datasets_root,
+                                                                                 capsys, damage):
+    """One such file made `hauwm datasets list` fail with an AttributeError or TypeError, for every dataset there."""
+    write_dataset("test/kept-v0", iter(random_episodes[:1]), {"task": TASK})
+    write_dataset("test/odd-v0", iter(random_episodes[:1]), {"task": TASK})
+    path = datasets_root / "test" / "odd-v0" / "data" / "metadata.json"
+    path.write_text(json.dumps(damage(json.loads(path.read_text()))))
+    assert main(["list"]) == 0
+    listed = capsys.readouterr()
+    assert "test/kept-v0" in listed.out and "test/odd-v0" not in listed.out
+    assert re.search(r"damaged: test/odd-v0 \(.*metadata.json.*\): write it again, or delete", listed.err), listed.err
+    assert main(["inspect", "test/odd-v0", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "test/odd-v0" in err and "metadata.json" in err and "Traceback" not in err
 
 
 def test_an_episode_that_ends_before_its_last_step_is_refused():
