@@ -613,6 +613,16 @@ def test_a_directory_not_named_as_a_dataset_is_listed_apart_not_a_traceback(rand
         load_episodes("test/typo-v0")
 
 
+def test_the_normalised_return_of_episodes_shorter_than_the_suites_says_it_is_not_comparable():
+    """Episodes of 30, 30 and 500 steps: only the longest was looked at, and the caveat was left out."""
+    from finetune.datasets.summary import Summary
+
+    summary = Summary(TASK)
+    for steps in (30, 30, 500):
+        summary.add({"reward": np.ones(steps + 1, np.float32)})
+    assert "2 of 3 episodes shorter than the suite's 500 steps (30-500): not comparable" in "\n".join(summary.lines())
+
+
 @pytest.mark.parametrize("damage", [lambda m: {**m, "hauwm": None}, lambda m: {**m, "hauwm": "drawer"}, lambda m: []],
                          ids=["our-settings-null", "our-settings-text", "a-list"])
 def test_a_metadata_file_of_another_shape_is_named_damaged_and_the_others_listed(random_episodes, datasets_root,
