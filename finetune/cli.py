@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
     from finetune.run_dir import CHECKPOINT
-    from finetune.termination import Terminated
+    from finetune.termination import Terminated, interrupted_once
     from model.config import ConfigError
 
     argv = sys.argv[1:] if argv is None else argv
@@ -153,7 +153,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{parser(subcommand).prog}: note: the scratch agent does not use --pretrained {pretrained}",
                   file=sys.stderr)
             pretrained = None
-        result = _runner(paradigm)(cfg, pretrained, progress=not args.no_progress)
+        with interrupted_once():  # a second Ctrl-C while the run stops must not cut its envs' closing short
+            result = _runner(paradigm)(cfg, pretrained, progress=not args.no_progress)
     except (ConfigError, DivergedError, PretrainedError, FinetuneError, ReplayError) as error:
         print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2

@@ -57,6 +57,37 @@ def handling_sigterm(handler: Callable[[int, FrameType | None], None]) -> Iterat
         signal.signal(signal.SIGTERM, before)
 
 
+def stop_listening() -> None:
+    """Ignore SIGINT and SIGTERM from now on (in the main thread): the process is stopping already, and its clean-up
+    must not be cut short by a second Ctrl-C — a partial dataset half deleted, an env's OpenGL context half freed
+    (which crashed the process when it was freed again)."""
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, signal.SIG_IGN)
+
+
+def interrupt_once(signum: int, frame: FrameType | None) -> None:
+    """A SIGINT handler: KeyboardInterrupt, as Python's own, and every SIGINT and SIGTERM after it ignored."""
+    stop_listening()
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def interrupted_once() -> Iterator[None]:
+    """The block runs with `interrupt_once` for SIGINT (in the main thread); SIGINT's and SIGTERM's handlers come
+    back as they were afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, interrupt_once)
+    try:
+        yield
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+
+
 @contextlib.contextmanager
 def terminable() -> Iterator[StopRequest]:
     """SIGTERM sets the StopRequest's flag instead of killing the process (`handling_sigterm`)."""

@@ -179,7 +179,7 @@ def collect(args: argparse.Namespace) -> None:
     start = time.perf_counter()
     description = f"{metadata['source']} episodes of {metadata['task']} (hauwm datasets collect)"
     dataset = write_dataset(args.dataset_id, tracked(episodes, summary, total, args.dataset_id, not args.no_progress),
-                            metadata, jpeg=args.jpeg, description=description, keep_on_interrupt=True)
+                            metadata, jpeg=args.jpeg, description=description, keep_finished=True)
     minutes = (time.perf_counter() - start) / 60
     print(f"wrote {args.dataset_id} to {dataset_path(args.dataset_id)} ({dataset.storage.get_size():.1f} MB, "
           f"{'JPEG' if args.jpeg else 'raw'} frames, {len(summary.returns) / minutes:.1f} episodes/min)")
@@ -245,21 +245,30 @@ def list_(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from finetune.termination import interrupted_once
+
     args = parser().parse_args(sys.argv[1:] if argv is None else argv)
-    with sigterm_as_interrupt() as terminated:
-        return run_command(args, terminated)
+    with interrupted_once(), sigterm_as_interrupt() as terminated:
+        try:
+            return run_command(args, terminated)
+        except KeyboardInterrupt:  # while run_command imported what it runs (torch: seconds), before anything began
+            stopped, status = stopped_by(terminated)
+            print(f"hauwm datasets: {stopped}; nothing was written", file=sys.stderr)
+            return status
 
 
 @contextlib.contextmanager
 def sigterm_as_interrupt() -> Iterator[list[int]]:
     """SIGTERM (SLURM's scancel or time limit) does what Ctrl-C does: `collect` keeps the episodes finished as a
-    whole dataset, `merge` deletes its part; the list yielded gets the signal, so the exit status can say so."""
-    from finetune.termination import handling_sigterm
+    whole dataset, `merge` deletes its part; the list yielded gets the signal, so the exit status can say so. Every
+    SIGINT and SIGTERM after it is ignored while the command stops (`stop_listening`)."""
+    from finetune.termination import handling_sigterm, stop_listening
 
     terminated: list[int] = []
 
     def interrupt(signum: int, frame) -> None:
         terminated.append(signum)
+        stop_listening()
         raise KeyboardInterrupt
 
     with handling_sigterm(interrupt):
@@ -298,7 +307,8 @@ def run_command(args: argparse.Namespace, terminated: list[int]) -> int:
     except KeptOnInterrupt as kept:
         stopped, status = stopped_by(terminated)
         print(f"hauwm datasets: {stopped}; the {kept.dataset.total_episodes} episodes finished are kept as "
-              f"{args.dataset_id}: collect more under another ID and `hauwm datasets merge` them", file=sys.stderr)
+              f"{args.dataset_id}: collect more under another ID, with another --seed (the same seed plays the same episodes "
+              "again), and `hauwm datasets merge` them", file=sys.stderr)
         return status
     except DeletedOnInterrupt as deleted:
         stopped, status = stopped_by(terminated)

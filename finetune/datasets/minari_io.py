@@ -60,7 +60,7 @@ class DeletedOnInterrupt(KeyboardInterrupt):
 
 
 class KeptOnInterrupt(KeyboardInterrupt):
-    """Ctrl-C between two episodes of write_dataset(keep_on_interrupt=True): the episodes written so far were kept
+    """Ctrl-C between two episodes of write_dataset(keep_finished=True): the episodes written so far were kept
     as a whole dataset, `dataset`."""
 
     def __init__(self, dataset) -> None:
@@ -426,25 +426,29 @@ def _episode_buffer(episode: dict[str, np.ndarray]):
                          terminations=terminations, truncations=truncations, infos=infos)
 
 
+class NoRoom(DatasetError):
+    """The disk has no room for the next episode (`check_room`)."""
+
+
 def check_room(path: Path, episode: dict[str, np.ndarray]) -> None:
-    """Refuse (DatasetError) to write `episode` where the disk has less room than twice its raw bytes: HDF5 does not
+    """Refuse (NoRoom) to write `episode` where the disk has less room than twice its raw bytes: HDF5 does not
     fail cleanly on a full disk (it crashed the process, leaving a damaged dataset behind), so it must never get there."""
     existing = next(parent for parent in (path, *path.parents) if parent.exists())
     needed, free = 2 * sum(value.nbytes for value in episode.values()), shutil.disk_usage(existing).free
     if free < needed:
-        raise DatasetError(f"no room for the next episode under {existing} ({free / 1e6:.1f} MB free, {needed / 1e6:.1f} "
-                           "MB needed): free some space or point MINARI_DATASETS_PATH elsewhere; the partial dataset "
-                           "is deleted")
+        raise NoRoom(f"no room for the next episode under {existing} ({free / 1e6:.1f} MB free, {needed / 1e6:.1f} "
+                     "MB needed): free some space or point MINARI_DATASETS_PATH elsewhere")
 
 
 def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], metadata: dict[str, Any],
-                  jpeg: bool = False, description: str | None = None, keep_on_interrupt: bool = False):
+                  jpeg: bool = False, description: str | None = None, keep_finished: bool = False):
     """Write episodes (replay layout, obs [T+1, 3, 64, 64]) as a new Minari dataset; returns the MinariDataset.
 
     Episodes are appended one at a time as `episodes` yields them (a generator never holds the dataset in
-    memory); if anything fails on the way, the partial dataset is deleted. With `keep_on_interrupt`, Ctrl-C while
-    `episodes` makes the next episode keeps those written as the dataset and raises KeptOnInterrupt (collecting
-    them may have taken hours; a merge, whose part would be a misleading dataset, does not keep them). Frames are
+    memory); if anything fails on the way, the partial dataset is deleted. With `keep_finished`, Ctrl-C while
+    `episodes` makes the next episode keeps those written as the dataset and raises KeptOnInterrupt, and a disk with
+    no room for the next episode keeps them too (a DatasetError that says so): collecting them may have taken hours;
+    a merge, whose part would be a misleading dataset, does not keep them. Frames are
     stored raw (lossless) unless `jpeg`: Minari's JPEG (Pillow, quality 75, 4:2:0 chroma) is about 7x smaller but
     changes a 64x64 Meta-World frame by ~6 grey levels on average (docs/datasets.md). `metadata` (our settings: task,
     source, env settings) is stored under the "hauwm" key of the dataset's metadata.json; Table 4's random
@@ -452,11 +456,11 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
     """
     check_dataset_id(dataset_id)
     with writing(dataset_id):
-        return _write_dataset(dataset_id, episodes, metadata, jpeg, description, keep_on_interrupt)
+        return _write_dataset(dataset_id, episodes, metadata, jpeg, description, keep_finished)
 
 
 def _write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], metadata: dict[str, Any], jpeg: bool,
-                   description: str | None, keep_on_interrupt: bool):
+                   description: str | None, keep_finished: bool):
     """write_dataset, by the holder of the dataset's writer lock."""
     import minari
 
@@ -471,7 +475,7 @@ def _write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], m
 
     refuse_existing()
     settings = {**metadata, "complete": False}  # until the end: a writer killed on the way leaves it marked unfinished
-    dataset, with_success, stopped, made = None, None, False, False
+    dataset, with_success, stopped, made, no_room = None, None, False, False, None
     iterator = iter(episodes)
     try:
         while not stopped:
@@ -497,10 +501,11 @@ def _write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], m
                     if ("success" in episode) != with_success:
                         raise ValueError("episodes of one dataset must all have, or all lack, a success flag")
                     dataset.update_dataset_from_buffer([_episode_buffer(episode)])
-            except KeyboardInterrupt:
-                if not (keep_on_interrupt and dataset is not None):
+            except (KeyboardInterrupt, NoRoom) as stop:
+                if not (keep_finished and dataset is not None):
                     raise
                 stopped = True  # between two episodes: those written make a whole dataset
+                no_room = stop if isinstance(stop, NoRoom) else None
         if dataset is None:
             raise DatasetError(f"dataset {dataset_id!r}: no episodes to write")
         extra: dict[str, Any] = {METADATA_KEY: {**settings, "complete": True}}
@@ -510,7 +515,7 @@ def _write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], m
             with signals_deferred():
                 dataset.storage.update_metadata(extra)  # a dataset without it would pass for one of unknown task
         except KeyboardInterrupt:  # after it: the dataset is whole
-            if not keep_on_interrupt:
+            if not keep_finished:
                 raise
             stopped = True
     except BaseException as error:
@@ -518,7 +523,12 @@ def _write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], m
             shutil.rmtree(path, ignore_errors=True)
             if isinstance(error, KeyboardInterrupt):
                 raise DeletedOnInterrupt(dataset_id) from None
+            if isinstance(error, NoRoom):
+                raise NoRoom(f"{error}; the part written is deleted") from None
         raise
+    if no_room is not None:
+        raise NoRoom(f"{no_room}; the {dataset.total_episodes} episodes finished are kept as {dataset_id}, a whole "
+                     "dataset") from None
     if stopped:
         raise KeptOnInterrupt(dataset)
     return dataset

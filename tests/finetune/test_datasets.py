@@ -203,13 +203,55 @@ def test_a_signal_while_an_episode_is_written_waits_for_its_end(random_episodes,
     kept = None
     try:
         with sigterm_as_interrupt():
-            write_dataset("test/kept-v0", iter(random_episodes[:3]), {"task": TASK}, keep_on_interrupt=True)
+            write_dataset("test/kept-v0", iter(random_episodes[:3]), {"task": TASK}, keep_finished=True)
     except KeptOnInterrupt as stopped:
         kept = stopped.dataset
     assert kept is not None, f"the write was not stopped: writes {writes}, the signal met {handlers}, " \
                              f"{signal.Signals(signum).name} is handled by {signal.getsignal(signum)}"
     assert kept.total_episodes == 2 and writes == [0, 1]
     assert hauwm_metadata(open_dataset("test/kept-v0"))["task"] == TASK
+
+
+def test_a_second_ctrl_c_while_a_merge_deletes_its_part_is_ignored(random_episodes, monkeypatch, datasets_root, capsys):
+    """Ctrl-C pressed twice: the second cut the deletion of the merge's part short, which left a dataset directory
+    that blocked its ID, and the command said "nothing was written" (collect's env, freed half-way, crashed)."""
+    from finetune.datasets import minari_io
+
+    for dataset_id in ("test/a-v0", "test/b-v0"):
+        write_dataset(dataset_id, iter(random_episodes[:2]), {"task": TASK})
+    write, rmtree = minari.MinariDataset.update_dataset_from_buffer, shutil.rmtree
+
+    def interrupted_during_the_second(dataset, buffers) -> None:
+        if dataset.total_episodes == 1:
+            signal.raise_signal(signal.SIGINT)  # delivered once the episode is written
+        write(dataset, buffers)
+
+    def rmtree_interrupted(path, **kwargs) -> None:
+        signal.raise_signal(signal.SIGINT)  # a second Ctrl-C while the part is deleted
+        rmtree(path, **kwargs)
+
+    monkeypatch.setattr(minari.MinariDataset, "update_dataset_from_buffer", interrupted_during_the_second)
+    monkeypatch.setattr(minari_io.shutil, "rmtree", rmtree_interrupted)
+    handler = signal.getsignal(signal.SIGINT)
+    assert main(["merge", "test/a-v0", "test/b-v0", "--out", "test/ab-v0", "--no-progress"]) == 130
+    assert "hauwm datasets: interrupted; the part of test/ab-v0 written was deleted" in capsys.readouterr().err
+    assert not (datasets_root / "test" / "ab-v0").exists()
+    assert signal.getsignal(signal.SIGINT) is handler  # as it was, for whatever runs next in this process
+
+
+def test_sigterm_while_the_command_starts_is_said_as_sigterm(monkeypatch, capsys):
+    """SIGTERM while the command imported its modules (torch: seconds) was reported as Ctrl-C, with status 130."""
+    from finetune.datasets import cli
+
+    real = cli.run_command
+
+    def terminated_while_importing(args, terminated):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return real(args, terminated)
+
+    monkeypatch.setattr(cli, "run_command", terminated_while_importing)
+    assert main(["list"]) == 143
+    assert capsys.readouterr().err.strip() == "hauwm datasets: terminated (SIGTERM); nothing was written"
 
 
 def test_a_write_that_fails_leaves_no_partial_dataset(random_episodes, monkeypatch, datasets_root):
@@ -221,7 +263,7 @@ def test_a_write_that_fails_leaves_no_partial_dataset(random_episodes, monkeypat
         write_dataset("test/cut-v0", cut_short(), {"task": TASK})
     assert not list_datasets()
     with pytest.raises(KeptOnInterrupt) as stopped:  # what `collect` asks for: the finished episodes are kept
-        write_dataset("test/kept-v0", cut_short(), {"task": TASK}, keep_on_interrupt=True)
+        write_dataset("test/kept-v0", cut_short(), {"task": TASK}, keep_finished=True)
     assert stopped.value.dataset.total_episodes == 1 and list(list_datasets()) == ["test/kept-v0"]
     assert hauwm_metadata(open_dataset("test/kept-v0"))["task"] == TASK
     shutil.rmtree(datasets_root / "test" / "kept-v0")
@@ -243,9 +285,15 @@ def test_a_write_that_fails_leaves_no_partial_dataset(random_episodes, monkeypat
     episode_bytes = sum(value.nbytes for value in random_episodes[0].values())
     free = iter([10 * episode_bytes, episode_bytes])  # room for the first episode, not for the second
     monkeypatch.setattr(shutil, "disk_usage", lambda path: types.SimpleNamespace(free=next(free)))
-    with pytest.raises(DatasetError, match=r"no room for the next episode under .* MB free, .* MB needed\): free some"):
+    with pytest.raises(DatasetError, match=r"no room for the next episode under .* MB free, .* MB needed\): free some"
+                                           r".*; the part written is deleted"):
         write_dataset("test/room-v0", iter(random_episodes[:2]), {"task": TASK})
     assert not list_datasets()
+    free = iter([10 * episode_bytes, episode_bytes])  # what `collect` asks for: the finished episodes are kept, as on
+    with pytest.raises(DatasetError, match=r"no room for the next episode .*; the 1 episodes finished are kept as "
+                                           r"test/room-v0, a whole dataset"):  # Ctrl-C (they were deleted)
+        write_dataset("test/room-v0", iter(random_episodes[:2]), {"task": TASK}, keep_finished=True)
+    assert open_dataset("test/room-v0").total_episodes == 1
 
 
 def test_missing_malformed_and_existing_ids_are_refused_with_what_exists(random_episodes, capsys):

@@ -19,7 +19,7 @@ import finetune.train
 from finetune.cli import main
 from finetune.offline import OfflineAgent, train_offline
 from finetune.run_dir import CHECKPOINT
-from finetune.termination import Terminated, terminable
+from finetune.termination import Terminated, interrupted_once, terminable
 
 from test_finetune_runs import tiny_run_settings  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 from test_offline import offline_config
@@ -37,6 +37,22 @@ def sigterm_once(function, when):
             os.kill(os.getpid(), signal.SIGTERM)
         return function(*args, **kwargs)
     return wrapped
+
+
+def test_after_a_first_ctrl_c_the_signals_that_follow_are_ignored_until_the_block_ends():
+    """A second Ctrl-C while a run stopped cut the closing of its envs short: freed again by the garbage collector,
+    a MetaWorld env's OpenGL context crashed the process (SIGSEGV)."""
+    before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    closed = []
+    with pytest.raises(KeyboardInterrupt), interrupted_once():
+        try:
+            signal.raise_signal(signal.SIGINT)
+        finally:  # the clean-up under way when the user presses Ctrl-C again (and a job's SIGTERM comes)
+            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(signal.SIGTERM)
+            closed.append(True)
+    assert closed == [True]
+    assert {signum: signal.getsignal(signum) for signum in before} == before
 
 
 def test_the_handler_found_before_is_called_too_and_comes_back():
