@@ -534,6 +534,21 @@ def _write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], m
     return dataset
 
 
+def refuse_replayed(source_ids: list[str], settings: list[dict[str, Any]]) -> None:
+    """A DatasetError if two datasets were collected alike (the same policy, seed and settings): the seeded envs and
+    policies play the same episodes again, which a merge would hold twice."""
+    recipes: dict[str, str] = {}
+    for dataset_id, written in zip(source_ids, settings):
+        if written.get("source") not in ("expert", "random", "agent") or "seed" not in written:
+            continue  # a run's replay, a merge, a dataset made elsewhere: not played from a seed here
+        recipe = json.dumps({key: value for key, value in written.items() if key not in ("complete", "has_success")},
+                            sort_keys=True)
+        if (first := recipes.setdefault(recipe, dataset_id)) != dataset_id:
+            raise DatasetError(f"{first} and {dataset_id} were collected alike ({written['source']}, seed "
+                               f"{written['seed']}, the same settings): their first episodes are the same ones; "
+                               f"collect {dataset_id} again with another --seed")
+
+
 def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
     """Concatenate the episodes of `source_ids` into a new dataset `out_id` (e.g. medium replay + expert).
 
@@ -549,6 +564,7 @@ def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
                            "episodes that often, over-weighting them in every batch; name each dataset once")
     datasets = [open_dataset(dataset_id) for dataset_id in source_ids]
     settings = [hauwm_metadata(dataset) for dataset in datasets]
+    refuse_replayed(source_ids, settings)
     agreed = {}  # what the sources that record it agree on, kept even where a source made elsewhere records nothing
     for key in ("task", "action_repeat", "fast_render", "image_size"):  # what offline RL and imitation check
         values = {s[key] for s in settings if key in s}

@@ -517,6 +517,19 @@ def test_a_merge_that_names_a_dataset_twice_is_refused_not_doubled(random_episod
     assert "test/merged-v0" not in list_datasets()
 
 
+def test_a_merge_of_two_datasets_collected_alike_is_refused_not_doubled(random_episodes, capsys):
+    """Following the advice after a Ctrl-C (collect more under another ID, merge them) with the same command played
+    the same episodes again: the merge held each twice, byte for byte, without a word."""
+    recipe = {"task": TASK, "source": "expert", "seed": 0, "action_noise": 0.0, "time_limit": 20}
+    write_dataset("test/first-v0", iter(random_episodes[:1]), recipe)
+    write_dataset("test/more-v0", iter(random_episodes[:2]), recipe)
+    write_dataset("test/seed1-v0", iter(random_episodes[1:2]), {**recipe, "seed": 1})
+    assert main(["merge", "test/first-v0", "test/more-v0", "--out", "test/merged-v0", "--no-progress"]) == 2
+    assert ("test/first-v0 and test/more-v0 were collected alike (expert, seed 0, the same settings): their first "
+            "episodes are the same ones; collect test/more-v0 again with another --seed") in capsys.readouterr().err
+    assert main(["merge", "test/first-v0", "test/seed1-v0", "--out", "test/merged-v0", "--no-progress"]) == 0
+
+
 def test_a_dict_observation_without_a_uint8_image_names_its_entries():
     floats = gymnasium.spaces.Dict({"pixels": gymnasium.spaces.Box(0.0, 1.0, (64, 64, 3), np.float32)})
     write_foreign("other/floatpixels-v0", floats, {"pixels": np.zeros((4, 64, 64, 3), np.float32)})
