@@ -191,6 +191,20 @@ def unfinished_message(dataset_id: str, episodes: int) -> str:
             "directory and write the dataset again")
 
 
+def refuse_nested(dataset_id: str) -> None:
+    """A DatasetError if `dataset_id` lies inside another dataset's directory, where `list` does not look (a dataset
+    holds no datasets) and which deleting that dataset would delete too."""
+    root, path = dataset_path(), dataset_path(dataset_id)
+    for parent in path.parents:
+        if parent == root or root not in parent.parents:
+            return
+        if (parent / "data").is_dir():
+            outer = parent.relative_to(root).as_posix()
+            raise DatasetError(f"dataset ID {dataset_id!r} lies inside the directory of dataset {outer} ({parent}): use "
+                               f"an ID of its own, e.g. {outer.rsplit('/', 1)[0] + '/' if '/' in outer else ''}"
+                               f"{path.name}")
+
+
 def writer_lock(dataset_id: str) -> Path:
     """The lock file a writer of `dataset_id` holds (`writing`): hidden, beside the dataset's directory."""
     path = dataset_path(dataset_id)
@@ -455,6 +469,7 @@ def write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], me
     and expert returns become Minari's ref_min_score / ref_max_score where the task has them.
     """
     check_dataset_id(dataset_id)
+    refuse_nested(dataset_id)
     with writing(dataset_id):
         return _write_dataset(dataset_id, episodes, metadata, jpeg, description, keep_finished)
 

@@ -530,6 +530,16 @@ def test_a_merge_of_two_datasets_collected_alike_is_refused_not_doubled(random_e
     assert main(["merge", "test/first-v0", "test/seed1-v0", "--out", "test/merged-v0", "--no-progress"]) == 0
 
 
+def test_a_dataset_inside_another_datasets_directory_is_refused(random_episodes, datasets_root):
+    """`collect --dataset-id test/outer-v0/inner-v0` wrote a dataset that `list` did not show, and that deleting
+    test/outer-v0, as its messages advise, would delete too."""
+    write_dataset("test/outer-v0", iter(random_episodes[:1]), {"task": TASK})
+    with pytest.raises(DatasetError, match=r"dataset ID 'test/outer-v0/inner-v0' lies inside the directory of dataset "
+                                           r"test/outer-v0 \(.*\): use an ID of its own, e.g. test/inner-v0"):
+        write_dataset("test/outer-v0/inner-v0", iter(random_episodes[:1]), {"task": TASK})
+    assert not (datasets_root / "test" / "outer-v0" / "inner-v0").exists()
+
+
 def test_a_dict_observation_without_a_uint8_image_names_its_entries():
     floats = gymnasium.spaces.Dict({"pixels": gymnasium.spaces.Box(0.0, 1.0, (64, 64, 3), np.float32)})
     write_foreign("other/floatpixels-v0", floats, {"pixels": np.zeros((4, 64, 64, 3), np.float32)})
