@@ -113,7 +113,7 @@ def evaluate_run(argv: list[str]) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     from finetune.agent import DivergedError
-    from finetune.config import FinetuneError, load_config, parse_override
+    from finetune.config import PARADIGM_SETTINGS, FinetuneConfig, FinetuneError, load_config, parse_override
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
     from finetune.run_dir import CHECKPOINT
@@ -134,17 +134,20 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"the paradigm is chosen by the command ({commands}), not by a setting: drop --set "
                               f"paradigm={overrides['paradigm']}")
         for key in ("steps", "logdir", "seed", "device", "dataset", "demos"):
-            if getattr(args, key, None) is not None:
-                overrides[key] = getattr(args, key)
+            if (flag := getattr(args, key, None)) is not None:
+                if key in overrides and overrides[key] != flag:
+                    raise ConfigError(f"--{key} {flag} and --set {key}={overrides[key]} disagree: give one")
+                overrides[key] = flag
         cfg = load_config(args.config, overrides)
         if cfg.paradigm != paradigm:
             raise ConfigError(f"{args.config} is a config for {cfg.paradigm} training (paradigm: {cfg.paradigm}): run "
                               f"`{COMMANDS[cfg.paradigm]} --config {args.config} …`, or give `{COMMANDS[paradigm]}` "
                               f"a config from {CONFIG_DIRS[paradigm]}/")
-        for other, (owner, flag, setting, _) in SUBCOMMANDS.items():  # a setting of another paradigm: ignored
-            if getattr(cfg, setting) is not None and owner != paradigm:
-                raise ConfigError(f"setting {setting} belongs to `hauwm finetune {other} {flag} ID`, not to "
-                                  f"`{COMMANDS[paradigm]}`: drop it")
+        defaults = FinetuneConfig()
+        for owner, settings in PARADIGM_SETTINGS.items():  # set (file, --set) for a run that would ignore it
+            if owner != paradigm and (given := [key for key in settings if getattr(cfg, key) != getattr(defaults, key)]):
+                raise ConfigError(f"setting {given[0]} belongs to `{COMMANDS[owner]}`, not to `{COMMANDS[paradigm]}`: "
+                                  "drop it")
         pretrained = args.pretrained
         if cfg.paradigm == "offline" and cfg.num_envs != 1:  # it steps no training env; a user would expect speed
             print(f"{parser(subcommand).prog}: note: offline RL steps no training env (evaluation plays one), so "

@@ -23,6 +23,9 @@ from model.compiling import COMPILE_SETTINGS
 from model.config import ConfigError, read_config_file
 
 PARADIGMS = ("online", "offline", "imitation")
+# the settings only one paradigm reads (the others' runs would ignore them)
+PARADIGM_SETTINGS = {"offline": ("dataset", "penalty", "penalty_scale", "penalty_frozen_weight"),
+                     "imitation": ("demos", "demo_fraction", "disc_lr", "disc_gp_scale", "expert_latents")}
 PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
 # settings that take one of a few words
 CHOICES: dict[str, tuple[str, ...]] = {

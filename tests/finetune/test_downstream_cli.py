@@ -48,15 +48,33 @@ def test_a_config_of_another_paradigm_is_refused_with_the_right_command(runners,
     assert main(["offline", "--config", "configs/offline/demo.yaml", "--set", "model_heads=1"]) == 2
     assert "hauwm finetune offline: error: penalty 'loglik_std'" in capsys.readouterr().err
     assert main(["--config", "configs/finetune/demo.yaml", "--set", "dataset=hauwm/x-v0"]) == 2  # was ignored
-    assert ("setting dataset belongs to `hauwm finetune offline --dataset ID`, not to `hauwm finetune`: drop it" in
+    assert ("setting dataset belongs to `hauwm finetune offline`, not to `hauwm finetune`: drop it" in
             capsys.readouterr().err)
     assert main(["offline", "--config", "configs/offline/demo.yaml", "--dataset", "x", "--set", "demos=y"]) == 2
-    assert "setting demos belongs to `hauwm finetune imitate --demos ID`" in capsys.readouterr().err
+    assert "setting demos belongs to `hauwm finetune imitate`, not to `hauwm finetune offline`" in capsys.readouterr().err
     # the message said the file was a config for online training: --set had changed what the file says
     assert main(["offline", "--config", "configs/offline/demo.yaml", "--dataset", "x", "--set", "paradigm=online"]) == 2
     assert ("the paradigm is chosen by the command (`hauwm finetune`, `hauwm finetune offline`, `hauwm finetune "
             "imitate`), not by a setting: drop --set paradigm=online") in capsys.readouterr().err
     assert not runners
+
+
+def test_a_setting_of_another_paradigm_or_given_twice_is_refused_not_ignored(runners, capsys):
+    """`offline --set expert_latents=posterior` and `imitate --set penalty_scale=50` ran without them, and
+    `--steps 2 --set steps=4` with the flag's value, without a word."""
+    assert main(["offline", "--config", "configs/offline/demo.yaml", "--dataset", "x",
+                 "--set", "expert_latents=posterior"]) == 2
+    assert ("setting expert_latents belongs to `hauwm finetune imitate`, not to `hauwm finetune offline`: drop it"
+            in capsys.readouterr().err)
+    assert main(["imitate", "--config", "configs/imitation/demo.yaml", "--demos", "x", "--set", "penalty_scale=50"]) == 2
+    assert "setting penalty_scale belongs to `hauwm finetune offline`, not to `hauwm finetune imitate`" \
+        in capsys.readouterr().err
+    assert main(["--config", "configs/finetune/demo.yaml", "--set", "disc_lr=0.001"]) == 2
+    assert "setting disc_lr belongs to `hauwm finetune imitate`, not to `hauwm finetune`" in capsys.readouterr().err
+    assert main(["--config", "configs/finetune/demo.yaml", "--steps", "2", "--set", "steps=4"]) == 2
+    assert "--steps 2 and --set steps=4 disagree: give one" in capsys.readouterr().err
+    assert main(["--config", "configs/finetune/demo.yaml", "--steps", "4", "--set", "steps=4"]) == 0  # agree
+    assert len(runners) == 1 and runners[0][1].steps == 4
 
 
 def test_a_missing_dataset_is_a_clear_error(export_dir, tmp_path, capsys):
