@@ -226,7 +226,7 @@ def inspect(args: argparse.Namespace) -> None:
 
 
 def list_(args: argparse.Namespace) -> None:
-    from finetune.datasets.minari_io import METADATA_KEY, dataset_path, scan_datasets, unfinished, unfinished_message
+    from finetune.datasets.minari_io import METADATA_KEY, datasets_root, scan_datasets, unfinished, unfinished_message
 
     datasets, notes = scan_datasets()
     for dataset_id in [dataset_id for dataset_id, metadata in datasets.items() if unfinished(metadata)]:
@@ -234,7 +234,7 @@ def list_(args: argparse.Namespace) -> None:
     for note in notes.values():
         print(note, file=sys.stderr)
     if not datasets:
-        print(f"no datasets under {dataset_path()} (MINARI_DATASETS_PATH); make one with `hauwm datasets collect`")
+        print(f"no datasets under {datasets_root()} (MINARI_DATASETS_PATH); make one with `hauwm datasets collect`")
         return
     print(f"{'ID':<44} {'task':<26} {'source':<8} {'episodes':>8} {'steps':>9} {'MB':>8}")
     for dataset_id, metadata in datasets.items():

@@ -68,9 +68,16 @@ class KeptOnInterrupt(KeyboardInterrupt):
         self.dataset = dataset
 
 
+def datasets_root() -> Path:
+    """$MINARI_DATASETS_PATH, or Minari's default ~/.minari/datasets, as Minari's `get_dataset_path` finds it, without
+    making it: reading (`list`, a dataset not found) leaves the disk as it was."""
+    root = os.environ.get("MINARI_DATASETS_PATH")
+    return Path(root) if root is not None else Path.home() / ".minari" / "datasets"
+
+
 def dataset_path(dataset_id: str | None = None) -> Path:
     """Where dataset `dataset_id` lives (whether or not it exists): $MINARI_DATASETS_PATH/<ID>; None: the root (made
-    where it does not exist, as Minari does)."""
+    where it does not exist, as Minari does: for writing)."""
     from minari.storage.datasets_root_dir import get_dataset_path
 
     try:
@@ -97,11 +104,13 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     below directories not hidden): (every readable dataset's ID -> its metadata; an ID -> a line about its directory:
     why it cannot be read and what to do, or that it is a copy of another dataset, which reads as itself). Done here:
     Minari 0.5's listing stops with a TypeError at a directory not named `name-vN`."""
-    root, datasets, notes = dataset_path(), {}, {}
+    root, datasets, notes = datasets_root(), {}, {}
+    seen: set[Path] = set()  # directories visited, resolved: a symlink to a directory above would loop
 
     def visit(directory: Path) -> None:
+        seen.add(directory.resolve())
         for child in sorted(directory.iterdir()):
-            if not child.is_dir() or child.name.startswith("."):
+            if not child.is_dir() or child.name.startswith(".") or child.resolve() in seen:
                 continue
             if not (child / "data").exists():
                 visit(child)
@@ -117,6 +126,9 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
             except (DatasetError, OSError, ValueError, KeyError) as error:  # JSONDecodeError is a ValueError
                 notes[dataset_id] = f"damaged: {dataset_id} ({error}): write it again, or delete {child}"
 
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"MINARI_DATASETS_PATH={root} is a file, not the datasets' directory: set "
+                           "MINARI_DATASETS_PATH to a directory")
     if root.is_dir():
         visit(root)
     return datasets, notes
@@ -141,7 +153,7 @@ def list_datasets() -> dict[str, dict[str, Any]]:
 
 
 def _missing_message(dataset_id: str) -> str:
-    root = dataset_path()
+    root = datasets_root()
     available = list(list_datasets())
     listing = (f"the datasets there: {', '.join(available)}" if available else
                "there are none; make one with `hauwm datasets collect` or point MINARI_DATASETS_PATH elsewhere")
@@ -153,7 +165,7 @@ def open_dataset(dataset_id: str):
     import minari
 
     check_dataset_id(dataset_id)
-    if not (dataset_path(dataset_id) / "data").is_dir():
+    if not (datasets_root() / dataset_id / "data").is_dir():
         raise DatasetError(_missing_message(dataset_id))
     try:
         read_metadata(dataset_path(dataset_id) / "data")

@@ -540,6 +540,20 @@ def test_a_dataset_inside_another_datasets_directory_is_refused(random_episodes,
     assert not (datasets_root / "test" / "outer-v0" / "inner-v0").exists()
 
 
+def test_list_reads_each_directory_once_and_makes_none(random_episodes, datasets_root, tmp_path, monkeypatch, capsys):
+    """A symlink to a directory above it made `list` walk the loop until the paths grew too long (1,313 lines about
+    datasets that are one); and `list` made the datasets' directory where there was none."""
+    write_dataset("test/kept-v0", iter(random_episodes[:1]), {"task": TASK})
+    (datasets_root / "test" / "loop").symlink_to(datasets_root)
+    assert main(["list"]) == 0
+    listed = capsys.readouterr()
+    assert listed.out.count("kept-v0") == 1 and listed.err == ""
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "none-yet"))
+    assert main(["list"]) == 0
+    assert f"no datasets under {tmp_path / 'none-yet'}" in capsys.readouterr().out
+    assert not (tmp_path / "none-yet").exists()
+
+
 def test_a_dict_observation_without_a_uint8_image_names_its_entries():
     floats = gymnasium.spaces.Dict({"pixels": gymnasium.spaces.Box(0.0, 1.0, (64, 64, 3), np.float32)})
     write_foreign("other/floatpixels-v0", floats, {"pixels": np.zeros((4, 64, 64, 3), np.float32)})
@@ -754,5 +768,10 @@ def test_a_datasets_path_that_is_a_file_is_named_as_the_variable(tmp_path, monke
     (tmp_path / "afile").touch()
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "afile"))
     assert main(["list"]) == 2
+    assert (f"hauwm datasets: error: MINARI_DATASETS_PATH={tmp_path / 'afile'} is a file, not the datasets' directory: "
+            "set MINARI_DATASETS_PATH to a directory") in capsys.readouterr().err
+    args = ["collect", "--task", TASK, "--policy", "random", "--episodes", "1", "--dataset-id", "test/x-v0", "--set",
+            "time_limit=3", "--no-progress"]
+    assert main(args) == 2
     assert (f"hauwm datasets: error: MINARI_DATASETS_PATH={tmp_path / 'afile'}: the datasets' directory cannot be made "
             "there (File exists): set MINARI_DATASETS_PATH to a directory") in capsys.readouterr().err
