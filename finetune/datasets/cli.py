@@ -151,6 +151,10 @@ def collect(args: argparse.Namespace) -> None:
                 raise DatasetError(f"--checkpoint {args.checkpoint} trained on {run.task}, not --task {args.task}")
             args.task = run.task
             settings = run.env_settings
+            if overrides.get("action_repeat", run.action_repeat) != run.action_repeat:
+                raise DatasetError(f"--set action_repeat={overrides['action_repeat']}: the agent of {args.checkpoint} "
+                                   f"was trained acting every {run.action_repeat} frames (its action_repeat); played "
+                                   f"every {overrides['action_repeat']} its actions mean something else: drop it")
         if not args.task:
             raise DatasetError(f"--policy {args.policy} needs --task, e.g. --task metaworld_drawer_close")
         settings.update(overrides)

@@ -148,6 +148,9 @@ def test_collect_from_a_runs_replay_and_with_its_agent(tmp_path, tiny_config, ca
     assert main(args) == 0
     (episode,) = load_episodes("test/agent-v0", task=TASK, action_dim=4, progress=False)
     assert episode["obs"].shape == (11, 3, 64, 64)  # the run's time limit
+    assert main(args[:-2] + ["test/repeat-v0", "--set", "action_repeat=4"]) == 2  # was played so, without a word
+    assert (f"--set action_repeat=4: the agent of {rundir} was trained acting every 1 frames (its action_repeat); "
+            "played every 4 its actions mean something else: drop it") in capsys.readouterr().err
     assert main(["collect", "--from-run", str(rundir), "--task", "dmc_cheetah_run", "--dataset-id", "test/x-v0"]) == 2
     assert "trained on metaworld_drawer_close" in capsys.readouterr().err
 
