@@ -77,6 +77,20 @@ def test_a_setting_of_another_paradigm_or_given_twice_is_refused_not_ignored(run
     assert len(runners) == 1 and runners[0][1].steps == 4
 
 
+def test_a_run_that_recorded_another_paradigms_setting_still_resumes_without_it():
+    """Runs made before such settings were refused kept them in config.yaml and their checkpoint; dropping the setting,
+    as the refusal says, then met the resume's "trained with penalty_scale=10.0 (asked: 5.0)": the run was stuck."""
+    import dataclasses
+
+    from finetune.config import FinetuneConfig
+    from finetune.run_dir import changed_settings
+
+    cfg = FinetuneConfig(task="dmc_cartpole_swingup")
+    written = {**dataclasses.asdict(cfg), "penalty_scale": 10.0, "disc_lr": 1e-3}
+    assert changed_settings(cfg, written) == []
+    assert changed_settings(cfg, {**written, "horizon": 7}) == ["horizon=7 (asked: 15)"]
+
+
 def test_a_missing_dataset_is_a_clear_error(export_dir, tmp_path, capsys):
     args = ["offline", "--config", "configs/offline/demo.yaml", "--pretrained", str(export_dir), "--logdir",
             str(tmp_path / "run"), "--device", "cpu", "--no-progress", "--set", "units=32", "--set", "hidden=24"]
