@@ -562,12 +562,12 @@ def _write_dataset(dataset_id: str, episodes: Iterable[dict[str, np.ndarray]], m
 
 
 def refuse_replayed(source_ids: list[str], settings: list[dict[str, Any]]) -> None:
-    """A DatasetError if two datasets were collected alike (the same policy, seed and settings): the seeded envs and
-    policies play the same episodes again, which a merge would hold twice."""
+    """A DatasetError if two datasets were collected alike (the scripted expert or the random policy, the same seed and
+    settings): the seeded envs and policies play the same episodes again, which a merge would hold twice."""
     recipes: dict[str, str] = {}
     for dataset_id, written in zip(source_ids, settings):
-        if written.get("source") not in ("expert", "random", "agent") or "seed" not in written:
-            continue  # a run's replay, a merge, a dataset made elsewhere: not played from a seed here
+        if written.get("source") not in ("expert", "random") or "seed" not in written:
+            continue  # an agent (its run's checkpoint.pt may have been trained on since), a replay, a merge, elsewhere
         recipe = json.dumps({key: value for key, value in written.items() if key not in ("complete", "has_success")},
                             sort_keys=True)
         if (first := recipes.setdefault(recipe, dataset_id)) != dataset_id:

@@ -531,6 +531,10 @@ def test_a_merge_of_two_datasets_collected_alike_is_refused_not_doubled(random_e
     assert ("test/first-v0 and test/more-v0 were collected alike (expert, seed 0, the same settings): their first "
             "episodes are the same ones; collect test/more-v0 again with another --seed") in capsys.readouterr().err
     assert main(["merge", "test/first-v0", "test/seed1-v0", "--out", "test/merged-v0", "--no-progress"]) == 0
+    agent = {**recipe, "source": "agent", "checkpoint": "runs/x/checkpoint.pt", "actions": "mode"}  # trained on since?
+    write_dataset("test/agent-v0", iter(random_episodes[:1]), agent)
+    write_dataset("test/agent-later-v0", iter(random_episodes[1:2]), agent)
+    assert main(["merge", "test/agent-v0", "test/agent-later-v0", "--out", "test/agents-v0", "--no-progress"]) == 0
 
 
 def test_a_dataset_inside_another_datasets_directory_is_refused(random_episodes, datasets_root):
