@@ -66,11 +66,12 @@ def path_problem(err: OSError, stage: str) -> str:
 
 
 def stdout_gone() -> bool:
-    """Whether stdout is a pipe whose reader has gone: poll(2) reports an error on the write end of such a pipe."""
+    """Whether stdout's reader has gone: poll(2) reports an error on the write end of a pipe or FIFO whose reader
+    closed it, and a hang-up on a socket whose peer did."""
     try:
         poller = select.poll()
         poller.register(sys.stdout.fileno(), select.POLLOUT)
-        return any(events & select.POLLERR for _, events in poller.poll(0))
+        return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
     except (AttributeError, OSError, ValueError):  # no file descriptor (a test's captured output), or one closed
         return False
 

@@ -43,6 +43,18 @@ def test_output_piped_into_a_reader_that_has_gone_ends_quietly(tmp_path, args):
     assert result.returncode == 141 and result.stderr == ""
 
 
+def test_output_to_a_socket_whose_peer_has_gone_ends_quietly():
+    """stdout a socket (a service's log collector) whose peer closed: as for a pipe, rc 141 and no traceback."""
+    import socket
+
+    ours, theirs = socket.socketpair()
+    theirs.close()
+    result = subprocess.run([sys.executable, "-m", "hauwm", "--help"], stdout=ours.fileno(), stderr=subprocess.PIPE,
+                            text=True, timeout=120)
+    ours.close()
+    assert result.returncode == 141 and result.stderr == ""
+
+
 def test_a_broken_pipe_that_is_not_stdout_is_not_taken_for_a_reader_that_has_gone(monkeypatch):
     """A pipe to a worker process that died (the shard build's decoders had one) ended the command with exit status
     141 and no word, as `| head` does; it is an error of its own, with its traceback."""
