@@ -54,14 +54,22 @@ def handling_sigterm(handler: Callable[[int, FrameType | None], None]) -> Iterat
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, before)
+        if not _Stopping.stopped:  # else SIGTERM stays ignored until the `interrupted_once` block ends
+            signal.signal(signal.SIGTERM, before)
+
+
+class _Stopping:
+    """The `interrupted_once` blocks running (in the main thread), and whether a signal has stopped them."""
+    blocks = 0
+    stopped = False
 
 
 def stop_listening() -> None:
-    """Ignore SIGINT and SIGTERM from now on (in the main thread): the process is stopping already, and its clean-up
-    must not be cut short by a second Ctrl-C — a partial dataset half deleted, an env's OpenGL context half freed
-    (which crashed the process when it was freed again)."""
-    if threading.current_thread() is threading.main_thread():
+    """Inside an `interrupted_once` block, ignore SIGINT and SIGTERM until it ends: the process is stopping already,
+    and its clean-up must not be cut short by a second Ctrl-C — a partial dataset half deleted, an env's OpenGL
+    context half freed (which crashed the process when it was freed again). Outside one, nothing."""
+    if _Stopping.blocks and threading.current_thread() is threading.main_thread():
+        _Stopping.stopped = True
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, signal.SIG_IGN)
 
@@ -74,16 +82,21 @@ def interrupt_once(signum: int, frame: FrameType | None) -> None:
 
 @contextlib.contextmanager
 def interrupted_once() -> Iterator[None]:
-    """The block runs with `interrupt_once` for SIGINT (in the main thread); SIGINT's and SIGTERM's handlers come
-    back as they were afterwards."""
+    """The block runs with `interrupt_once` for SIGINT (in the main thread), unless the process was started with
+    SIGINT ignored (`cmd &` in a script: immune to Ctrl-C, as POSIX has it); SIGINT's and SIGTERM's handlers come back
+    as they were afterwards."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
-    signal.signal(signal.SIGINT, interrupt_once)
+    if before[signal.SIGINT] is not signal.SIG_IGN:
+        signal.signal(signal.SIGINT, interrupt_once)
+    _Stopping.blocks += 1
     try:
         yield
     finally:
+        _Stopping.blocks -= 1
+        _Stopping.stopped = _Stopping.stopped and _Stopping.blocks > 0
         for signum, handler in before.items():
             signal.signal(signum, handler)
 

@@ -53,6 +53,24 @@ def test_after_a_first_ctrl_c_the_signals_that_follow_are_ignored_until_the_bloc
             closed.append(True)
     assert closed == [True]
     assert {signum: signal.getsignal(signum) for signum in before} == before
+    with pytest.raises(KeyboardInterrupt), interrupted_once():  # a SIGTERM block (a run) left on the way
+        try:
+            with terminable():
+                signal.raise_signal(signal.SIGINT)
+        finally:  # the envs' closing comes after it
+            sigterm_after_the_run = signal.getsignal(signal.SIGTERM)
+    assert sigterm_after_the_run is signal.SIG_IGN
+    assert {signum: signal.getsignal(signum) for signum in before} == before
+
+
+def test_a_process_started_with_ctrl_c_ignored_stays_immune_to_it():
+    """`hauwm datasets collect … &` in a script: POSIX starts it with SIGINT ignored, and the commands' own handler
+    made a Ctrl-C meant for the script stop it."""
+    code = ("import signal\nfrom finetune.termination import interrupted_once\nwith interrupted_once():\n"
+            "    signal.raise_signal(signal.SIGINT)\nprint('immune')")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    assert result.returncode == 0 and result.stdout == "immune\n", result.stderr
 
 
 def test_the_handler_found_before_is_called_too_and_comes_back():
