@@ -78,7 +78,7 @@ class ShardDataModule(lightning.LightningDataModule):
             timeout: seconds a loader worker may take for one batch before the run stops with an error naming
                 its shard
             worker_priority: normal, or idle for workers that use only the cores the training step leaves free
-                (Linux; for CPU-only runs on few cores, see `loader.check_worker_priority`)
+                (Linux; for CPU-only runs on few cores, see `dataloader.check_worker_priority`)
             pin_memory: copy each batch into page-locked memory for its copy to the GPU (torch's pinning thread);
                 unset: pin where a CUDA GPU is visible. false copies from ordinary memory instead
         """

@@ -145,10 +145,10 @@ def shard_samples(sources: Iterator[dict]) -> Iterator[dict]:
                 sample["__url__"] = source["url"]
                 yield sample
             stream.read()  # the tar's trailing zero blocks: a `pipe:` command finishes before it is closed
-        except BaseException:  # cut off (an epoch that ends inside the shard, an error): a command is ended, not
-            if isinstance(stream, Pipe):  # awaited (webdataset's close waits for it to end by itself)
-                stream.proc.kill()
-                stream.stream.close()  # so that its close at collection does nothing
+        except BaseException:  # cut off (an epoch that ends inside the shard, an error): not waited for
+            if isinstance(stream, Pipe):  # (webdataset's close waits for the command to end by itself)
+                stream.stream.close()  # the command gets SIGPIPE at its next write (and the close at collection is
+                stream.proc.kill()  # a no-op); its shell (`sh -c`), which may have forked it, ends now
                 stream.proc.wait()
             else:
                 stream.close()

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import csv
+import os
 import sys
 import time
 from pathlib import Path
@@ -135,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
                               f"paradigm={overrides['paradigm']}")
         for key in ("steps", "logdir", "seed", "device", "dataset", "demos"):
             if (flag := getattr(args, key, None)) is not None:
-                if key in overrides and overrides[key] != flag:
+                if key in overrides and not same_value(key, overrides[key], flag):
                     raise ConfigError(f"--{key} {flag} and --set {key}={overrides[key]} disagree: give one")
                 overrides[key] = flag
         cfg = load_config(args.config, overrides)
@@ -184,6 +185,13 @@ def main(argv: list[str] | None = None) -> int:
               f"goes on from its checkpoint); {last_evaluation(Path(cfg.logdir))}")
     print(best_kept(Path(cfg.logdir), unit))
     return 0
+
+
+def same_value(key: str, setting: object, flag: object) -> bool:
+    """Whether a --set value (read as YAML: `2024` is a number) and a flag's say the same (a path: the same path)."""
+    if key == "logdir":
+        return os.path.normpath(str(setting)) == os.path.normpath(str(flag))
+    return str(setting) == str(flag)
 
 
 def best_kept(logdir: Path, unit: str) -> str:

@@ -105,15 +105,15 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     why it cannot be read and what to do, or that it is a copy of another dataset, which reads as itself). Done here:
     Minari 0.5's listing stops with a TypeError at a directory not named `name-vN`."""
     root, datasets, notes = datasets_root(), {}, {}
-    seen: set[Path] = set()  # directories visited, resolved: a symlink to a directory above would loop
 
-    def visit(directory: Path) -> None:
-        seen.add(directory.resolve())
+    def visit(directory: Path, above: frozenset[Path]) -> None:
+        """`above`: the directories walked down to this one, resolved (a symlink to one of them would loop)."""
+        above = above | {directory.resolve()}
         for child in sorted(directory.iterdir()):
-            if not child.is_dir() or child.name.startswith(".") or child.resolve() in seen:
+            if not child.is_dir() or child.name.startswith(".") or child.resolve() in above:
                 continue
             if not (child / "data").exists():
-                visit(child)
+                visit(child, above)
                 continue
             dataset_id = child.relative_to(root).as_posix()
             try:
@@ -130,7 +130,7 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
         raise DatasetError(f"MINARI_DATASETS_PATH={root} is a file, not the datasets' directory: set "
                            "MINARI_DATASETS_PATH to a directory")
     if root.is_dir():
-        visit(root)
+        visit(root, frozenset())
     return datasets, notes
 
 

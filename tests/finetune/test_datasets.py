@@ -552,9 +552,12 @@ def test_list_reads_each_directory_once_and_makes_none(random_episodes, datasets
     datasets that are one); and `list` made the datasets' directory where there was none."""
     write_dataset("test/kept-v0", iter(random_episodes[:1]), {"task": TASK})
     (datasets_root / "test" / "loop").symlink_to(datasets_root)
+    (datasets_root / "a-link").symlink_to(datasets_root / "test")  # listed first, a dataset of its own: as before
     assert main(["list"]) == 0
     listed = capsys.readouterr()
-    assert listed.out.count("kept-v0") == 1 and listed.err == ""
+    assert re.findall(r"^\S+kept-v0", listed.out, re.MULTILINE) == ["a-link/kept-v0", "test/kept-v0"]
+    assert listed.err.strip() == "note: a-link/kept-v0 is a copy of dataset test/kept-v0 (its data/metadata.json keeps " \
+                                 "that ID); it is read as the dataset of its directory"
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "none-yet"))
     assert main(["list"]) == 0
     assert f"no datasets under {tmp_path / 'none-yet'}" in capsys.readouterr().out

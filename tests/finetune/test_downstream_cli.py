@@ -74,7 +74,9 @@ def test_a_setting_of_another_paradigm_or_given_twice_is_refused_not_ignored(run
     assert main(["--config", "configs/finetune/demo.yaml", "--steps", "2", "--set", "steps=4"]) == 2
     assert "--steps 2 and --set steps=4 disagree: give one" in capsys.readouterr().err
     assert main(["--config", "configs/finetune/demo.yaml", "--steps", "4", "--set", "steps=4"]) == 0  # agree
-    assert len(runners) == 1 and runners[0][1].steps == 4
+    assert main(["--config", "configs/finetune/demo.yaml", "--logdir", "2024", "--set", "logdir=2024"]) == 0
+    assert main(["--config", "configs/finetune/demo.yaml", "--logdir", "runs/x", "--set", "logdir=runs/x/"]) == 0
+    assert [cfg.steps for _, cfg in runners[:1]] == [4] and [cfg.logdir for _, cfg in runners[1:]] == ["2024", "runs/x"]
 
 
 def test_a_run_that_recorded_another_paradigms_setting_still_resumes_without_it():
