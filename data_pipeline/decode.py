@@ -6,8 +6,8 @@ Where decord cannot open a file (or is not installed), or would decode it wrong 
 the frames of some narrow videos and misplaces the colour of odd heights: `decord_frame_trusted`), or
 the container declares more than a million frames, OpenCV decodes the clip; `DecodedClip.decoder` says
 which decoded it, and the shard builder counts OpenCV's. `fault_tol=0` makes decord raise instead of silently
-repeating frames on corrupt input; a clip that decodes to fewer frames than its container's duration
-declares is corrupt too (truncated, or garbage in the stream). Faults raise `ClipError(reason, detail)`,
+repeating frames on corrupt input; a clip whose frames end before its container's duration declares is corrupt
+too (truncated, or garbage at the end), and so is one short of frames with a hole in the middle (`holed`). Faults raise `ClipError(reason, detail)`,
 which the shard builder records in `errors.jsonl`; the per-clip timeout lives in `workers.py`.
 """
 
@@ -26,6 +26,7 @@ from hauwm.messages import first_line
 
 RESIZE_MODES = ("squash", "center-crop")
 DECLARED_SLACK = 2  # frames a container's declared duration may exceed the decoded count by
+MAX_DROPPED_RUN = 5  # frames a camera may drop in a row; a longer run, in a clip short of frames, is a hole (damage)
 MAX_DECLARED_FRAMES = 1_000_000  # more, and decord is not tried: a damaged duration of 1e15 ms made it abort
 #                                  the process (std::bad_alloc); a day at 12 fps is about 1e6 frames
 
@@ -140,6 +141,16 @@ def _open(path: Path, container: Container):
     return "opencv", frames_iter, next(frames_iter, None)
 
 
+def holed(decoded: int, longest_step: float, container: Container) -> bool:
+    """Whether fewer frames decode than the container declares (by more than DECLARED_SLACK) and, somewhere in the
+    stream, more than MAX_DROPPED_RUN frames in a row are missing (`longest_step`: the longest time between two
+    decoded frames): garbage in the stream that the decoder skipped, after a mangled frame, though the last frame
+    ends on time. A camera dropping frames drops a few at a time."""
+    if container.fps <= 0 or decoded + DECLARED_SLACK >= container.frame_count:
+        return False
+    return longest_step * container.fps > MAX_DROPPED_RUN + 1 + 0.5  # a step of n + 1 frame times: n frames missing
+
+
 def broken_off(decoded: int, decoded_until: float, container: Container) -> bool:
     """Whether the decoded stream ends before the duration its container declares, by more than DECLARED_SLACK
     frames: a truncated file, or garbage where the decoder stopped. Timed by the frames' timestamps (a stream whose
@@ -166,10 +177,11 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
     source_height, source_width = first[0].shape[:2]
     fps = first[1]
     resized, decoded_until = [resize_frame(first[0], size, resize)], first[2]
-    decoder_error = None
+    longest_step, decoder_error = 0.0, None
     try:
         for frame, _, ends in frames_iter:
             resized.append(resize_frame(frame, size, resize))
+            longest_step = max(longest_step, ends - decoded_until)
             decoded_until = max(decoded_until, ends)
     except Exception as error:  # DECORDLimitReachedError (frames recovered from corrupt data), a failed decoder check
         decoder_error = f"{backend}: {first_line(error)[:200]}"
@@ -181,6 +193,9 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
         raise ClipError("corrupt", f"the stream breaks off: fewer frames decode than the {declared} its container "
                                    "declares (truncated or damaged; or a video whose audio outlasts its picture, or which "
                                    "starts late: docs/data_pipeline.md)")
+    if declared and holed(len(resized), longest_step, container):
+        raise ClipError("corrupt", f"the stream has a hole: more than {MAX_DROPPED_RUN} frames in a row are missing, "
+                                   f"and fewer frames decode than the {declared} its container declares (damaged)")
     if decoder_error is not None:
         raise ClipError("corrupt", decoder_error)
     if len(resized) < min_frames:

@@ -120,6 +120,18 @@ def test_a_container_declaring_an_absurd_duration_is_corrupt_not_a_crashed_decod
     assert decoded.returncode == 1 and "ClipError: corrupt: the stream breaks off" in decoded.stderr, decoded.stderr
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3, 8])
+def test_a_stream_with_a_hole_in_the_middle_is_corrupt(tmp_path, seed):
+    """The sample data's `corrupt` clips of these seeds decode with a hole of 11-19 frames in the middle (and a garbage
+    frame before it) and end on time: timed by their last frame alone, they went into the shards as good clips."""
+    from data_pipeline.sample_data import make_sample_data
+
+    broken = make_sample_data(tmp_path, clips=3, with_broken=True, seed=seed)
+    corrupt = next(clip for clip, kind in broken.items() if kind == "corrupt")
+    with pytest.raises(ClipError, match="^corrupt: the stream has a hole"):
+        decode_clip(next((tmp_path / "videos").glob(f"{corrupt}.*")), 64)
+
+
 @pytest.mark.parametrize("decoder", ["decord", "opencv"])
 def test_a_video_whose_timestamps_skip_frames_is_whole_not_corrupt(monkeypatch, decoder):
     """A camera that drops frames writes 30 frames over 3 s at 12 fps: its container declares 36. Counting frames
