@@ -194,6 +194,8 @@ def id_fault(clip_id: str) -> str | None:
     """Why `clip_id` cannot key a clip's tar members (`<id>.json`, `<id>.jpgs`), or None when it can."""
     if not clip_id or any(c in clip_id for c in "./\\"):
         return "tar keys must not be empty nor contain '.', '/' or '\\'"
+    if any(ord(c) < 32 or c == "\x7f" for c in clip_id):  # a NUL no file name can hold: it was `missing`, "retry"
+        return "ids must not hold control characters (no video file can be named so)"
     if len(f"{clip_id}.jpgs".encode()) > MAX_MEMBER_NAME:
         return f"the tar format's member names hold at most {MAX_MEMBER_NAME} bytes, so an id at most {MAX_MEMBER_NAME - 5}"
     return None

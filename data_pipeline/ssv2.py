@@ -11,6 +11,7 @@ contents are not always "something" and some class names contain commas.
 from __future__ import annotations
 
 import json
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,14 +42,52 @@ def class_name(template: str) -> str:
     return template.replace("[", "").replace("]", "")
 
 
+class _RepeatedKey(ValueError):
+    pass
+
+
+def _object(pairs: list[tuple[str, object]]) -> dict:
+    """A JSON object, refused where it gives a key twice (JSON keeps the last without a word)."""
+    if repeated := [key for key, count in Counter(key for key, _ in pairs).items() if count > 1]:
+        raise _RepeatedKey(repeated[0])
+    return dict(pairs)
+
+
 def _read_json(path: Path):
     if not path.is_file():
         raise AnnotationError(f"{path}: file not found; --annotations must be the directory holding the four "
                               "something-something-v2-*.json files")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
+        data = json.loads(text, object_pairs_hook=_object)
+    except _RepeatedKey as error:
+        raise AnnotationError(f"{path}: the key {error.args[0]!r} appears twice in one object (JSON would keep the "
+                              "last): keep one") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise AnnotationError(f"{path}: not valid JSON ({error})") from None
+    try:
+        json.dumps(data, ensure_ascii=False).encode("utf-8")  # one pass over every string, at C speed
+    except UnicodeEncodeError:
+        raise AnnotationError(f"{path}: the text {ascii(_with_a_lone_surrogate(data))[:80]} holds half of a UTF-16 pair "
+                              "(an emoji cut in half, as JavaScript's string slicing leaves it): no file name or text "
+                              "encoding can hold it; remove it") from None
+    return data
+
+
+def _with_a_lone_surrogate(value: object) -> str | None:
+    """The first string in a JSON value that holds a lone UTF-16 surrogate (a pair escaped whole, e.g. \\ud83d\\ude00,
+    decodes to one character), or None."""
+    if isinstance(value, str):
+        try:
+            value.encode("utf-8")
+            return None
+        except UnicodeEncodeError:
+            return value
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        if (found := _with_a_lone_surrogate(key) or _with_a_lone_surrogate(item)) is not None:
+            return found
+    return None
 
 
 def load_labels(annotations: Path) -> dict[str, int]:

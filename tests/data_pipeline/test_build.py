@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from data_pipeline import decode, workers
-from data_pipeline.build import BuildConfig, BuildError, build, plan_shards
+from data_pipeline.build import BuildConfig, BuildError, build, id_fault, plan_shards
 from data_pipeline.sample_data import BROKEN_KINDS
 from data_pipeline.shard_format import decode_frames
 from data_pipeline.ssv2 import AnnotationError, annotation_path
@@ -378,6 +378,7 @@ def test_an_id_too_long_for_a_tar_member_is_recorded_not_fatal(sample_ssv2, clea
     errors = [json.loads(line) for line in (config.out / "errors.jsonl").read_text().splitlines()]
     assert [(e["id"], e["reason"]) for e in errors] == [(long_id, "invalid-id")] and "at most 95" in errors[0]["detail"]
     assert manifest["splits"]["validation"]["clips"] == len(entries) - 1 and status == 0
+    assert "control characters" in id_fault("a\x00b") and "control characters" in id_fault("a\tb")  # "missing" before
 
 
 def test_retry_failed_rebuilds_the_shard_of_a_clip_that_was_missing(sample_ssv2, clean_annotations, tmp_path):

@@ -32,6 +32,22 @@ def annotations(tmp_path):
     return tmp_path
 
 
+@pytest.mark.parametrize("name, text, message", [
+    ("train", '[{"id": "3", "label": "pushing \\ud83d box", "template": "Pushing [something] from left to right"}]',
+     r"train.json: the text 'pushing \\ud83d box' holds half of a UTF-16 pair \(an emoji cut in half"),
+    ("labels", '{"Pushing something from left to right": "2", "Pushing something from left to right": "4"}',
+     r"labels.json: the key 'Pushing something from left to right' appears twice in one object"),
+    ("train", '[{"id": "3", "label": "a", "template": "Pushing [something] from left to right", "template": "b"}]',
+     r"train.json: the key 'template' appears twice in one object"),
+], ids=["lone-surrogate", "class-named-twice", "field-twice"])
+def test_text_json_takes_but_nothing_can_use_is_refused_naming_it(annotations, name, text, message):
+    """A lone surrogate went into the shards (preview then died with SIGSEGV in OpenCV's putText; as an id, the build
+    raised UnicodeEncodeError); of a key given twice, JSON keeps the last without a word (a class lost its clips)."""
+    (annotations / f"something-something-v2-{name}.json").write_text(text)
+    with pytest.raises(AnnotationError, match=message):
+        load_split(annotations, "train")
+
+
 def test_class_name_strips_only_the_brackets():
     assert class_name("Putting [something] onto [a slanted surface]") == "Putting something onto a slanted surface"
     assert class_name("Tipping [something] with [something in it] over, so [something in it] falls out") == \
