@@ -31,7 +31,8 @@ from .ssv2 import AnnotationError, ClipRecord, annotation_path, load_labels, loa
 from .workers import ClipResult, DecodePool, DecodeSettings
 
 SETTINGS_FILE = "build.json"
-RETRYABLE = ("missing", "timeout", "crashed")  # failures of the moment: the file may arrive, the machine be less busy
+RETRYABLE = ("missing", "unreadable", "timeout", "crashed")  # failures of the moment: the file may arrive or be
+#                                                               readable, the machine be less busy
 MAX_MEMBER_NAME = 100  # bytes of a tar member's name in the USTAR format the shards are written in
 MAX_SIZE = 512  # --size: the world model reads 64×64; SSv2's clips are 240 pixels high
 

@@ -132,7 +132,7 @@ def parser() -> argparse.ArgumentParser:
          help="exit non-zero when more than this fraction of clips fail (default 0.01)")
     flag("--timeout", metavar="S", type=float, default=30.0, help="seconds one clip may take to decode (default 30)")
     flag("--retry-failed", action="store_true",
-         help="rebuild the shards holding clips that failed as missing, timed out or crashed (e.g. once the "
+         help="rebuild the shards holding clips that failed as missing, unreadable, timed out or crashed (e.g. once the "
               "missing videos are there); other failures are facts of the files and stay")
     build.set_defaults(run=_build)
 

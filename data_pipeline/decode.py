@@ -32,7 +32,8 @@ MAX_DECLARED_FRAMES = 1_000_000  # more, and decord is not tried: a damaged dura
 
 
 class ClipError(Exception):
-    """A clip that cannot go into a shard; `reason` is `missing`, `empty`, `undecodable`, `corrupt` or `too-short`."""
+    """A clip that cannot go into a shard; `reason` is `missing`, `unreadable`, `empty`, `undecodable`, `corrupt` or
+    `too-short`."""
 
     def __init__(self, reason: str, detail: str):
         super().__init__(f"{reason}: {detail}")
@@ -169,6 +170,11 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
         raise ClipError("missing", f"{path} is {what}, not a video file" if what else f"no file at {path}")
     if os.path.getsize(path) == 0:
         raise ClipError("empty", "the file has 0 bytes")
+    try:  # decord and OpenCV would say only that they cannot open it: `undecodable`, never retried
+        with open(path, "rb") as file:
+            file.read(1)
+    except OSError as error:  # no permission, an I/O error of network storage: of the moment, retried
+        raise ClipError("unreadable", f"{path}: {error.strerror or error}") from None
     container = read_container(path)
     backend, frames_iter, first = _open(path, container)
     if first is None:

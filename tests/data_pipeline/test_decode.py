@@ -120,6 +120,23 @@ def test_a_container_declaring_an_absurd_duration_is_corrupt_not_a_crashed_decod
     assert decoded.returncode == 1 and "ClipError: corrupt: the stream breaks off" in decoded.stderr, decoded.stderr
 
 
+def test_a_video_that_cannot_be_read_is_unreadable_not_undecodable(tmp_path, monkeypatch):
+    """A file without read permission (or an I/O error of network storage) was `undecodable`, a fact of the file that
+    --retry-failed never retries: once readable, the clip stayed out of the shards for good."""
+    path = tmp_path / "clip.webm"
+    write_webm(path, np.zeros((12, 64, 96, 3), np.uint8))
+    real_open = open
+
+    def denied(file, *args, **kwargs):
+        if str(file) == str(path):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", denied)
+    with pytest.raises(ClipError, match=rf"^unreadable: {path}: Permission denied$"):
+        decode_clip(path, 64)
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3, 8])
 def test_a_stream_with_a_hole_in_the_middle_is_corrupt(tmp_path, seed):
     """The sample data's `corrupt` clips of these seeds decode with a hole of 11-19 frames in the middle (and a garbage
