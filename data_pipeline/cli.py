@@ -14,15 +14,19 @@ from .shard_format import ENCODINGS, MANIFEST_FILE
 from .ssv2 import SPLITS, AnnotationError
 
 
-def at_least(least: int) -> Callable[[str], int]:
-    """An argparse type for the counts and seeds below: a whole number >= `least`."""
+MAX_SAMPLE_CLIPS = 200_000  # sample-data: its ids come from 1..219,999 (sample_data.ID_RANGE), the broken ones too
+
+
+def at_least(least: int, most: int | None = None) -> Callable[[str], int]:
+    """An argparse type for the counts and seeds below: a whole number >= `least` (and <= `most`)."""
     def whole_number(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             value = least - 1
-        if value < least:
-            raise argparse.ArgumentTypeError(f"must be a whole number >= {least}, got {text!r}")
+        if value < least or most is not None and value > most:
+            within = f">= {least}" if most is None else f"from {least} to {most}"
+            raise argparse.ArgumentTypeError(f"must be a whole number {within}, got {text!r}")
         return value
     return whole_number
 
@@ -158,8 +162,8 @@ def parser() -> argparse.ArgumentParser:
                                  help="write the built-in stochastic-scene dataset in SSv2's format")
     flag = sample.add_argument
     flag("--out", metavar="DIR", type=path, required=True, help="output directory (annotations/, videos/)")
-    flag("--clips", metavar="N", type=at_least(3), default=96,
-         help="good clips over all splits, at least 3: one each for validation and test (default 96)")
+    flag("--clips", metavar="N", type=at_least(3, MAX_SAMPLE_CLIPS), default=96,
+         help=f"good clips over all splits, from 3 (one each for validation and test) to {MAX_SAMPLE_CLIPS} (default 96)")
     flag("--with-broken", action="store_true",
          help="add corrupt, truncated, empty, missing, too-short and non-video entries")
     flag("--seed", metavar="N", type=at_least(0), default=0, help="seed of the scenes (default 0)")

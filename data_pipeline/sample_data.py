@@ -30,6 +30,7 @@ from tqdm import tqdm
 from .ssv2 import annotation_path, class_name
 
 FPS = 12
+ID_RANGE = 220_000  # clip ids are drawn from 1..ID_RANGE - 1, as SSv2's run to 220,847
 HEIGHT = 240
 WIDTHS = (320, 352, 400, 427, 480)
 MIN_FRAMES, MAX_FRAMES = 24, 60
@@ -194,7 +195,7 @@ def make_sample_data(out: Path, clips: int, with_broken: bool = False, seed: int
     broken_plan = {"train": list(BROKEN_KINDS), "validation": ["missing", "too-short"], "test": []}
     sizes = split_sizes(clips)
     total = clips + (sum(len(kinds) for kinds in broken_plan.values()) if with_broken else 0)
-    ids = [str(i) for i in rng.choice(np.arange(1, 220_000), size=total, replace=False)]
+    ids = [str(i) for i in rng.choice(np.arange(1, ID_RANGE), size=total, replace=False)]
     jobs: dict[str, list] = {}
     broken: dict[str, str] = {}
     for split, size in sizes.items():

@@ -219,6 +219,14 @@ def test_sample_data_stopped_midway_leaves_nothing_so_the_same_command_starts_ag
     assert main(["sample-data", "--out", str(out), "--clips", "3", "--workers", "1"]) == 0
 
 
+def test_more_sample_clips_than_ids_is_refused_as_a_flag(tmp_path, capsys):
+    """--clips 220847 (SSv2's size) failed with numpy's "Cannot take a larger sample than population"."""
+    with pytest.raises(SystemExit):
+        main(["sample-data", "--out", str(tmp_path / "s"), "--clips", "220847"])
+    assert "--clips: must be a whole number from 3 to 200000, got '220847'" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+
 def test_sample_data_into_a_shard_directory_is_refused(built_shards, capsys):
     assert main(["sample-data", "--out", str(built_shards), "--clips", "3"]) == 2
     assert f"{built_shards} is a shard directory (manifest.json): pass another --out" in capsys.readouterr().err
