@@ -12,6 +12,7 @@ and rebuilds the rest, byte-identically. When every shard of every part is prese
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import importlib.util
 import json
@@ -208,7 +209,8 @@ def retryable(errors: list[dict]) -> list[dict]:
 
 
 def _error_entry(config: BuildConfig, record: ClipRecord, reason: str, detail: str) -> dict:
-    return {"id": record.id, "split": record.split, "path": str(config.videos / f"{record.id}.webm"),
+    # absolute: a resumed build whose --videos is spelled otherwise (relative, absolute) writes the same bytes
+    return {"id": record.id, "split": record.split, "path": os.path.abspath(config.videos / f"{record.id}.webm"),
             "reason": reason, "detail": detail}
 
 
@@ -338,8 +340,11 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
     if valid and not config.videos.is_dir():
         raise BuildError(f"--videos {config.videos}: not a directory (it should hold <id>.webm files)")
     if valid and not any((config.videos / f"{record.id}.webm").is_file() for record in valid):
+        other = sorted(path.name for path in config.videos.glob(f"{glob.escape(valid[0].id)}.*"))
+        found = (f"; {other[0]} is there, but clips are read from <id>.webm files: convert them to WebM, or rename "
+                 "them if they are WebM" if other else ": point --videos at the directory of SSv2's <id>.webm files")
         raise BuildError(f"--videos {config.videos} holds none of the {len(valid)} clips this part has left to "
-                         f"build (e.g. no {valid[0].id}.webm): point --videos at the directory of SSv2's <id>.webm files")
+                         f"build (e.g. no {valid[0].id}.webm){found}")
     config.out.mkdir(parents=True, exist_ok=True)
     check_settings(config.out, settings, digest, config.part)
     log(f"shards: {len(plans)} in all, {len(mine)} in part {config.part}/{config.num_parts}, "

@@ -56,7 +56,7 @@ def test_every_broken_entry_is_recorded_with_its_reason_and_kept_out_of_the_tars
     broken = json.loads((sample_ssv2 / "broken.json").read_text())
     errors = [json.loads(line) for line in (config.out / "errors.jsonl").read_text().splitlines()]
     assert {e["id"]: e["reason"] for e in errors} == {i: BROKEN_KINDS[kind] for i, kind in broken.items()}
-    assert all(e["path"].endswith(f"{e['id']}.webm") and e["detail"] for e in errors)
+    assert all(os.path.isabs(e["path"]) and e["path"].endswith(f"{e['id']}.webm") and e["detail"] for e in errors)
     assert manifest["errors"]["total"] == len(broken)
     stored = set()
     for split, counts in manifest["splits"].items():
@@ -312,6 +312,13 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
     with pytest.raises(BuildError, match=r"--videos .*annotations holds none of the \d+ clips this part has left "):
         build(config, log=quiet)
     assert not config.out.exists()  # refused before anything was written
+    mp4 = shutil.copytree(sample_ssv2 / "videos", tmp_path / "mp4")  # the videos, named otherwise: said so
+    for video in mp4.glob("*.webm"):
+        video.rename(video.with_suffix(".mp4"))
+    config.videos = mp4
+    with pytest.raises(BuildError, match=r"holds none of .* \(e.g. no (\d+).webm\); \1.mp4 is there, but clips are "
+                                         r"read from <id>.webm files"):
+        build(config, log=quiet)
     config.videos = sample_ssv2 / "videos"
     for setting, value, message in (("max_error_rate", 1.5, "--max-error-rate .* 0..1, got 1.5"),
                                     ("timeout", 0.0, "--timeout .* must be positive and at most 86400 .*, got 0.0"),
