@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -210,7 +211,9 @@ def make_sample_data(out: Path, clips: int, with_broken: bool = False, seed: int
     everything = [job for split_jobs in jobs.values() for job in split_jobs]
     progress = dict(total=len(everything), desc="sample clips", unit="clip", disable=None)
     if workers > 1:
-        with get_context("fork").Pool(workers) as pool:
+        # Ctrl-C is the main process's to handle (it stops the pool): a worker's own traceback was a stray
+        # "Process ForkPoolWorker-2:" on the terminal
+        with get_context("fork").Pool(workers, initializer=signal.signal, initargs=(signal.SIGINT, signal.SIG_IGN)) as pool:
             entries = list(tqdm(pool.imap(_make_clip, everything), **progress))
     else:
         entries = list(tqdm(map(_make_clip, everything), **progress))
