@@ -30,6 +30,9 @@ def _clips(directory: Path, shards: list[dict]) -> Iterator[dict]:
 
 
 def _text(canvas: np.ndarray, text: str, x: int, y: int, scale: float = 0.35) -> None:
+    """`text` drawn in OpenCV's Hershey font, which has ASCII only: other characters are drawn as '?' (half a UTF-16
+    pair, in a caption of shards built before such text was refused, made putText crash the process)."""
+    text = text.encode("ascii", "replace").decode("ascii")
     cv2.putText(canvas, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 

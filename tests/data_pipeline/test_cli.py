@@ -134,6 +134,18 @@ def test_preview_writes_a_grid_of_clips(built_shards, tmp_path):
     assert not (tmp_path / "preview.txt").exists()
 
 
+def test_a_caption_holding_half_a_utf16_pair_is_drawn_not_a_crash():
+    """Shards built before such annotations were refused may hold one: OpenCV's putText died with SIGSEGV on it."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np\nfrom data_pipeline.preview import _text\n"
+            "_text(np.zeros((20, 200, 3), np.uint8), 'pushing \\ud83d ball', 2, 12)\nprint('drawn')")
+    drawn = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                           cwd=Path(__file__).parents[2])
+    assert drawn.returncode == 0 and drawn.stdout == "drawn\n", drawn.stderr
+
+
 def test_a_preview_that_cannot_be_written_leaves_the_one_before(built_shards, tmp_path, monkeypatch, capsys):
     out = tmp_path / "preview.png"
     assert main(["preview", str(built_shards), "--out", str(out), "--clips", "2"]) == 0
