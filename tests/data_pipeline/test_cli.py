@@ -248,7 +248,7 @@ def test_sample_data_into_a_shard_directory_is_refused(built_shards, capsys):
     (["build", "--annotations", "A", "--videos", "V", "--out", ""], "argument --out: an empty path (an unset shell"),
     (["inspect", " "], "argument dir: an empty path"),
     (["preview", "DIR", "--out", "p.png", "--clips", "0"], "argument --clips: must be a whole number >= 1, got '0'"),
-    (["sample-data", "--out", "OUT", "--clips", "-3"], "argument --clips: must be a whole number >= 3"),
+    (["sample-data", "--out", "OUT", "--clips", "-3"], "argument --clips: must be a whole number from 3 to 200000"),
     (["preview", "DIR", "--out", "p.png", "--seed", "-1"], "argument --seed: must be a whole number >= 0, got '-1'"),
     (["sample-data", "--out", "OUT", "--seed", "x"], "argument --seed: must be a whole number >= 0, got 'x'"),
 ])
