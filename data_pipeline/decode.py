@@ -7,8 +7,9 @@ the frames of some narrow videos and misplaces the colour of odd heights: `decor
 the container declares more than a million frames, OpenCV decodes the clip; `DecodedClip.decoder` says
 which decoded it, and the shard builder counts OpenCV's. `fault_tol=0` makes decord raise instead of silently
 repeating frames on corrupt input; a clip whose frames end before its container's duration declares is corrupt
-too (truncated, or garbage at the end), and so is one short of frames with a hole in the middle (`holed`). Faults raise `ClipError(reason, detail)`,
-which the shard builder records in `errors.jsonl`; the per-clip timeout lives in `workers.py`.
+too (truncated, or garbage at the end: `broken_off`), and so is one short of frames with a hole in the middle
+(`holed`). Faults raise `ClipError(reason, detail)`, which the shard builder records in `errors.jsonl`; the
+per-clip timeout lives in `workers.py`.
 """
 
 from __future__ import annotations

@@ -99,12 +99,12 @@ def inspect_shards(directory: Path, verify: bool = False) -> int:
     errors, damaged = read_errors(directory / ERRORS_FILE)
     settings = manifest["settings"]
     print(f"{directory}: format {manifest['format_version']}, {settings['size']}×{settings['size']} "
-        f"{settings['resize']}, encoding {settings['encoding']}" +
-        (f" (quality {settings['quality']})" if settings["encoding"] == "jpeg" else ""))
+          f"{settings['resize']}, encoding {settings['encoding']}" +
+          (f" (quality {settings['quality']})" if settings["encoding"] == "jpeg" else ""))
     print(f"{'split':<12}{'clips':>8}{'frames':>10}{'shards':>8}{'MB':>9}{'B/frame':>9}{'errors':>8}")
     for split, counts in manifest["splits"].items():
         print(f"{split:<12}{counts['clips']:>8}{counts['frames']:>10}{len(counts['shards']):>8}"
-            f"{counts['bytes'] / 1e6:>9.1f}{counts['bytes'] / max(counts['frames'], 1):>9.0f}{counts['errors']:>8}")
+              f"{counts['bytes'] / 1e6:>9.1f}{counts['bytes'] / max(counts['frames'], 1):>9.0f}{counts['errors']:>8}")
     by_reason = Counter((error["split"], error["reason"]) for error in errors)
     for (split, reason), count in sorted(by_reason.items()):
         print(f"  {split} errors: {reason}: {count}")

@@ -165,22 +165,23 @@ def open_dataset(dataset_id: str):
     import minari
 
     check_dataset_id(dataset_id)
-    if not (datasets_root() / dataset_id / "data").is_dir():
+    path = datasets_root() / dataset_id
+    if not (path / "data").is_dir():
         raise DatasetError(_missing_message(dataset_id))
     try:
-        read_metadata(dataset_path(dataset_id) / "data")
+        read_metadata(path / "data")
         dataset = minari.load_dataset(dataset_id)
     except ImportError as error:  # a storage format whose extra is not installed, e.g. Arrow
-        raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} is stored in a format this "
+        raise DatasetError(f"dataset {dataset_id!r} at {path} is stored in a format this "
                            f"installation cannot read ({error})") from None
     except DatasetError as error:
         raise DatasetError(f"dataset {dataset_id!r}: {error}; write it again") from None
     except (ValueError, OSError, KeyError, AssertionError, json.JSONDecodeError) as error:
-        raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} could not be read by Minari "
+        raise DatasetError(f"dataset {dataset_id!r} at {path} could not be read by Minari "
                            f"{minari.__version__} ({type(error).__name__}: {error}); a dataset of another Minari "
                            "version needs that version, a damaged one must be written again") from None
     if dataset.total_episodes == 0:
-        raise DatasetError(f"dataset {dataset_id!r} at {dataset_path(dataset_id)} holds no episodes: collect into it "
+        raise DatasetError(f"dataset {dataset_id!r} at {path} holds no episodes: collect into it "
                            "again (delete the directory first)")
     if unfinished(dataset.storage.metadata):
         raise DatasetError(unfinished_message(dataset_id, dataset.total_episodes))
