@@ -29,8 +29,11 @@ target: the fit with 2 workers against the bare step loop on the same batches (a
 A shared CPU host drifts by more than that margin within minutes, so on the CPU every fit is bracketed: the
 bare eager loop is timed again right after it, each fit is compared with the mean of the bare runs just before
 and just after, and the whole sequence runs --rounds times (default 3) with the median ratio printed last.
-Then each fit by the host's clock: the mean and median time inside its steps and between them, and its slow steps
-(an interval over twice the median: a logging step, a late batch, an epoch's end) with what they add to the mean.
+Then each fit by the host's clock: the mean and median time inside its steps and between them, inside's median over
+its first 200 timed steps and the rest (do steps slow down as the fit goes on?), its slow steps (an interval over
+twice the median: a logging step, a late batch, an epoch's end) with what they add to the mean, and on a GPU how many
+steps the GPU had queued at a step's end (about 1: it waits for the host; many: the host is ahead, and blocks in a
+launch once CUDA's queue is full).
 Last, where a fit step's time goes (StepDiagnosis, one more short fit on long epochs): the operations that make
 the host wait for the GPU, by call site; the host's time inside and between steps; a profiled window.
 Shards: built from `hauwm shards sample-data --clips 344` in a temporary directory, or --shards DIR.
@@ -54,7 +57,7 @@ import tempfile
 import time
 import traceback
 import warnings
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -82,6 +85,8 @@ WARM_UP = 3  # bare steps before the timing: compiling and CUDA-graph recording 
 FIT_WARM_UP = 20  # fit steps before the timing (rounded up to whole epochs for short epochs)
 FED_STEPS = 500  # at most, timed steps of the bare step fed by the loader (each run compiles the step anew)
 UNPINNED_STEPS = 1000  # at most, steps of the unpinned fit: with --fit-steps 5000 the bench still ends in 8 minutes
+QUEUE_PROBE = 64  # at most, the steps the GPU is seen to have queued (a fit step launches ~80 kernels and 2 graphs)
+EARLY_STEPS = 200  # the timed steps a fit's host times are first shown for, then the rest (do steps slow down?)
 PROFILED_STEPS = 10  # bare steps profiled after the timed ones (a GPU): the device's busy time a step
 
 
@@ -89,10 +94,15 @@ class StepTimer(L.Callback):
     """The wall-clock time at the start of training and at the start and end of every training batch, and the CPU
     time of the training process (all its threads) at each batch end; the device is synchronised at the last step's
     end, so the last time covers all queued work, and not the last.ckpt the fit writes after it (the
-    checkpoint callbacks run after this one)."""
+    checkpoint callbacks run after this one). On a GPU also, at each batch end, how many steps the GPU has queued:
+    those whose work it has not finished, this one included (CUDA events, which complete in order). About 1 when
+    the GPU waits for the host; more when the host runs ahead, until CUDA's launch queue is full and a launch
+    blocks the host: then the host's time inside a step is the GPU's, whatever the GPU's busy time."""
 
     def __init__(self):
         self.start, self.starts, self.times, self.cpu_times = 0.0, [], [], []
+        self.queued: list[int] = []
+        self._events: deque[torch.cuda.Event] = deque(maxlen=QUEUE_PROBE)
 
     def on_train_start(self, trainer, pl_module):
         self.start = time.perf_counter()
@@ -105,6 +115,11 @@ class StepTimer(L.Callback):
             synchronize(pl_module.device)
         self.times.append(time.perf_counter())
         self.cpu_times.append(time.process_time())
+        if pl_module.device.type == "cuda":
+            self._events.append(torch.cuda.Event())
+            self._events[-1].record()
+            self.queued.append(next((index for index, event in enumerate(reversed(self._events)) if event.query()),
+                                    len(self._events)))
 
 
 class StepDiagnosis(L.Callback):
@@ -381,19 +396,27 @@ def loader_alone(shards: Path, data: dict, workers: int, worker_priority: str, t
     return {"batches_per_s": (total - warm) / (time.perf_counter() - times[warm - 1]), "per_epoch": len(loader)}
 
 
-def step_anatomy(starts: list[float], ends: list[float], warm: int) -> dict:
+def step_anatomy(starts: list[float], ends: list[float], queued: list[int], warm: int) -> dict:
     """The timed steps (from `warm` on) by the host's clock, in ms: inside a step (batch start to end: training_step
-    and its hooks) and between steps (the loop, the next batch, its copy), mean and median; and the slow steps,
-    whose interval from the last step's end is over twice the median, with what they add to the mean interval.
-    Means above medians say that a few steps (logging, a late batch, a pause) take the time, not every step."""
+    and its hooks) and between steps (the loop, the next batch, its copy), mean and median, and inside's median over
+    the first EARLY_STEPS timed steps and the rest; the slow steps, whose interval from the last step's end is over
+    twice the median, with what they add to the mean interval; on a GPU the mean number of steps it had queued at
+    a step's end (StepTimer), first EARLY_STEPS and the rest. Means above medians say that a few steps (logging, a
+    late batch, a pause) take the time, not every step; a later median above the early one, that steps slow down."""
     inside = [1000 * (end - start) for start, end in zip(starts[warm:], ends[warm:])]
     between = [1000 * (start - end) for start, end in zip(starts[warm:], ends[warm - 1:])]
     intervals = [1000 * (end - before) for end, before in zip(ends[warm:], ends[warm - 1:])]
     typical = statistics.median(intervals)
     slow = [interval for interval in intervals if interval > 2 * typical]
+
+    def early_late(values: list, summary) -> tuple[float, float]:
+        return tuple(summary(part) if part else math.nan for part in (values[:EARLY_STEPS], values[EARLY_STEPS:]))
+
     return {"inside": (statistics.fmean(inside), statistics.median(inside)),
+            "inside_early_late": early_late(inside, statistics.median),
             "between": (statistics.fmean(between), statistics.median(between)),
-            "slow_steps": len(slow), "slow_ms": sum(interval - typical for interval in slow) / len(intervals)}
+            "slow_steps": len(slow), "slow_ms": sum(interval - typical for interval in slow) / len(intervals),
+            "queued": early_late(queued[warm:], statistics.fmean)}
 
 
 def whole_epochs(steps: int, per_epoch: int) -> int:
@@ -432,7 +455,7 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
     return {"steps_per_s": (len(times) - warm) / (times[-1] - times[warm - 1]), "steps_per_epoch": per_epoch,
             "cpu_ms": 1000 * (cpu_times[-1] - cpu_times[warm - 1]) / (len(times) - warm),
             "timed_steps": len(times) - warm, "first_step_s": times[0] - timer.start,
-            "anatomy": step_anatomy(timer.starts, times, warm),
+            "anatomy": step_anatomy(timer.starts, times, timer.queued, warm),
             "scaler_skips": int(cli.model.scaler_skips), "nonfinite_steps": int(cli.model.nonfinite_steps),
             "peak_gib": peak_memory_gib(device), "diagnosis": by_name.get("StepDiagnosis")}
 
@@ -601,13 +624,16 @@ def main() -> None:
         shown = ", ".join(f"{ratio:.2f}" for ratio in values)
         print(f"{label}, {fit_workers} workers: {statistics.median(values):.2f}× the {kind}"
               + (f" (median of {shown})" if len(values) > 1 else ""))
-    print(f"\n{'the fits by the host':<18} {'workers':>7} {'inside ms':>13} {'between ms':>13} {'slow steps':>10} "
-          f"{'+ms a step':>10}  (every timed step, mean / median; slow: over twice the median interval, and what they "
-          "add to the mean)")
+    print(f"\n{'the fits by the host':<18} {'workers':>7} {'inside ms':>13} {'early / late':>13} {'between ms':>13} "
+          f"{'slow steps':>10} {'+ms a step':>10} {'GPU queue':>11}  (every timed step: inside and between steps, mean "
+          f"/ median; inside's median over the first {EARLY_STEPS} timed steps / the rest; slow: over twice the median "
+          "interval, and what they add to the mean; GPU queue: steps queued at a step's end, mean, early / late)")
     for label, fit_workers, anatomy in anatomies:
-        inside, between = (f"{mean:.2f} / {median:.2f}" for mean, median in (anatomy["inside"], anatomy["between"]))
-        print(f"{label:<18} {fit_workers:>7} {inside:>13} {between:>13} {anatomy['slow_steps']:>10} "
-              f"{anatomy['slow_ms']:10.2f}")
+        inside, early_late, between, queued = (" / ".join("—" if math.isnan(value) else f"{value:.2f}" for value in pair)
+                                               for pair in (anatomy["inside"], anatomy["inside_early_late"],
+                                                            anatomy["between"], anatomy["queued"]))
+        print(f"{label:<18} {fit_workers:>7} {inside:>13} {early_late:>13} {between:>13} {anatomy['slow_steps']:>10} "
+              f"{anatomy['slow_ms']:10.2f} {queued if gpu else '—':>11}")
     try:  # last: a profiler failure must not cost the figures above
         diagnosis = real_fit(config, long_epochs, config_workers if gpu else workers, worker_priority,
                              FIT_WARM_UP + StepDiagnosis.SYNC_STEPS + StepDiagnosis.PROFILE_STEPS + 2,
