@@ -179,8 +179,7 @@ def decode_clip(path: Path, size: int, resize: str = "squash", min_frames: int =
     container = read_container(path)
     backend, frames_iter, first = _open(path, container)
     if first is None:
-        raise ClipError("empty", f"{backend} decoded no frames (a file without a video stream, or in a codec neither "
-                                 "decord nor OpenCV decodes, e.g. AV1)")
+        raise ClipError("empty", f"{backend} decoded no frames (a codec neither decord nor OpenCV decodes, e.g. AV1)")
     source_height, source_width = first[0].shape[:2]
     fps = first[1]
     resized, decoded_until = [resize_frame(first[0], size, resize)], first[2]
