@@ -204,10 +204,21 @@ def test_a_checkpoint_that_cannot_be_written_keeps_the_one_before(tiny_config, t
     assert (tmp_path / CHECKPOINT).read_bytes() == before and not list(tmp_path.glob(".*.partial"))
 
 
-@pytest.mark.parametrize("device", ["gpu", "GPU", "cuda:x"])
-def test_a_device_torch_does_not_know_is_refused_by_name(device):
-    with pytest.raises(FinetuneError, match=f"device '{device}' is not a device: use auto, cpu, cuda or cuda:N"):
+@pytest.mark.parametrize("device", ["gpu", "GPU", "cuda:x", "mps", "meta", "xpu", "cpu:3"])
+def test_a_device_hauwm_does_not_run_on_is_refused_by_name(device):
+    """Devices torch knows but HAUWM does not run on (mps, meta) ended in a traceback from inside torch."""
+    with pytest.raises(FinetuneError, match=f"device '{device}' is not a device HAUWM runs on: use auto, cpu, cuda or "
+                                            "cuda:N"):
         resolve_device(device)
+
+
+def test_a_cuda_index_beyond_the_machines_devices_is_refused(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert resolve_device("cuda:0") == torch.device("cuda:0") and resolve_device("cuda") == torch.device("cuda")
+    with pytest.raises(FinetuneError, match=r"device 'cuda:1' asked for but this machine has 1 CUDA device\(s\), "
+                                            "cuda:0 to cuda:0"):
+        resolve_device("cuda:1")
 
 
 def test_a_run_directory_in_use_is_refused(export_dir, tmp_path, capsys):
