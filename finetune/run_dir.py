@@ -297,7 +297,8 @@ def resume(cfg: FinetuneConfig, agent: Agent, fingerprint: Fingerprint, counters
                           "without it (the run then keeps its next best evaluation)")["counters"]
         if kept.get("best_return", -np.inf) > counters.get("best_return", -np.inf):
             counters.update(best_return=kept["best_return"], best_at=kept["best_at"])
-    (Path(cfg.logdir) / "config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+    with written_whole(Path(cfg.logdir) / "config.yaml") as partial:  # `evaluate` reads it, and may read it now
+        partial.write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
     return counters
 
 

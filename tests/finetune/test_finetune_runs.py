@@ -14,8 +14,8 @@ from finetune.cli import best_kept, main
 from finetune.config import FinetuneError, load_config
 from finetune.agent import Agent
 from finetune.envs.base import PixelEnv
-from finetune.run_dir import (BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, run_config,
-                               save_checkpoint)
+from finetune.run_dir import (BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, resume,
+                               run_config, run_fingerprint, save_checkpoint)
 from finetune.train import (build_agent, evaluate, incomparable_returns_note, resolve_device, start_run, task_env,
                             train)
 from model.export import export_frozen
@@ -419,3 +419,22 @@ def test_a_run_resumed_after_a_crash_learns_what_the_same_resume_without_the_cra
     assert resumed["counters"]["episodes"] == 4 and len(list((logdir / "replay").glob("*.npz"))) == 4
     assert (f"note: {logdir / 'replay'}: 2 episodes stored after the checkpoint this run starts from deleted"
             in capsys.readouterr().err)
+
+
+def test_config_yaml_cut_short_by_a_full_disk_keeps_the_one_before(tiny_config, tmp_path, monkeypatch):
+    """config.yaml was written in place: a full disk (or a kill) halfway left half a YAML, which `evaluate` then read
+    with defaults for the missing settings."""
+    cfg = tiny_config(agent="scratch", logdir=str(tmp_path))
+    agent, fingerprint = build_agent(cfg, 1, None, torch.device("cpu")), run_fingerprint(cfg, None)
+    resume(cfg, agent, fingerprint, {"env_step": 0}, np.random.default_rng(0))
+    before = (tmp_path / "config.yaml").read_text()
+    write_text = type(tmp_path).write_text
+
+    def disk_fills(path, text, *args, **kwargs):
+        write_text(path, text[:len(text) // 2])
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(type(tmp_path), "write_text", disk_fills)
+    with pytest.raises(OSError, match="No space left"):
+        resume(cfg, agent, fingerprint, {"env_step": 0}, np.random.default_rng(0))
+    assert (tmp_path / "config.yaml").read_text() == before and not list(tmp_path.glob(".*.partial"))
