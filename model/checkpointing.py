@@ -51,8 +51,8 @@ class LastStepCheckpoint(Callback):
         # SIGTERM too: Lightning raises after this batch, but after an epoch's last batch only once it has counted the
         # epoch completed, and a checkpoint written then skips the next epoch when resumed
         if trainer.should_stop or trainer.received_sigterm or 0 <= trainer.max_steps <= trainer.global_step:
-            # ModelCheckpoint runs after this callback (Lightning puts it last) and writes last.ckpt itself at its own
-            # every_n_train_steps
+            # at a step of its every_n_train_steps ModelCheckpoint writes last.ckpt itself at this batch's end (it runs
+            # before this callback: `before_fit` appends ours to the sorted list), so one write either way
             save_last(trainer, unless_due=True)
 
     def on_exception(self, trainer: lightning.Trainer, pl_module: lightning.LightningModule,
@@ -65,9 +65,9 @@ class LastStepCheckpoint(Callback):
 
 
 def save_last(trainer: lightning.Trainer, unless_due: bool) -> None:
-    """Write last.ckpt through each save-last ModelCheckpoint that has not written this step's (`unless_due`: nor
-    will at this batch's end), unless it writes nothing now (`--trainer.fast_dev_run`, whose last.ckpt a real fit in
-    the same directory then resumed from); its protected methods are the ones it uses itself."""
+    """Write last.ckpt through each save-last ModelCheckpoint that has not written this step's (`unless_due`: and
+    does not write at this batch's end), unless it writes nothing now (`--trainer.fast_dev_run`, whose last.ckpt a
+    real fit in the same directory then resumed from); its protected methods are the ones it uses itself."""
     for callback in trainer.checkpoint_callbacks:
         if not (isinstance(callback, ModelCheckpoint) and callback.save_last):
             continue
