@@ -116,6 +116,8 @@ class EnsembleRSSM(nn.Module):
 
     def heads(self, deter: torch.Tensor, cond: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """All M prior heads at once: deter [B, D], cond [B, C] → mean, std [M, B, S] float32."""
+        if deter.dim() != 2:  # a [B, L, D] input would pass for one input per head where B = M: wrong, silently
+            raise ValueError(f"heads takes deter [B, D], not {list(deter.shape)}: flatten the leading axes first")
         hidden = F.elu(self.prior_hidden(torch.cat([deter, cond.to(deter.dtype)], dim=-1)))  # [M, B, H]
         return _mean_std(self.prior_out(hidden), self.min_std, self.max_std)
 

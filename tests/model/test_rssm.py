@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 import torch.nn.functional as F
 
@@ -60,6 +61,13 @@ def test_batched_heads_equal_a_per_head_reference():
         assert torch.allclose(std[i], 0.1 + 0.9 * torch.sigmoid(ref_std + 2.0), atol=1e-6)
     # and the heads really differ (independent initialisation)
     assert not torch.allclose(mean[0], mean[1])
+
+
+def test_heads_refuse_a_time_axis_that_would_pass_for_the_heads_axis():
+    """deter [B, L, D] with B = M went through head i for batch row i only, and came out [M, L, S] without a word."""
+    rssm = small_rssm(ensemble=3)
+    with pytest.raises(ValueError, match=r"heads takes deter \[B, D\], not \[3, 7, 20\]: flatten the leading axes"):
+        rssm.heads(torch.randn(3, 7, 20), torch.randn(3, 7, 8))
 
 
 def test_observe_equals_a_step_by_step_filter_in_values_and_gradients():
