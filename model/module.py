@@ -46,7 +46,8 @@ from model.world_model import WorldModel
 
 
 def check_settings(world_model: WorldModelConfig, k_max: int, lambda_init: float, kl_balance: float,
-                   hcu_target: float, lr: float, lambda_lr: float, grad_clip: float, kl_scale: float) -> None:
+                   hcu_target: float, lr: float, lambda_lr: float, grad_clip: float, kl_scale: float,
+                   noise_seed: int) -> None:
     """Raise ConfigError naming the first setting out of its range, before anything is built."""
     world_model.validate()
     for name, value in (("lambda_init", lambda_init), ("kl_balance", kl_balance), ("hcu_target", hcu_target),
@@ -68,8 +69,8 @@ def check_settings(world_model: WorldModelConfig, k_max: int, lambda_init: float
     for name, value in (("hcu_target", hcu_target), ("lr", lr), ("grad_clip", grad_clip)):
         if not value > 0:
             raise ConfigError(f"model.{name} must be positive, got {value}")
-    for name, value in (("lambda_lr", lambda_lr), ("kl_scale", kl_scale)):
-        if not value >= 0:
+    for name, value in (("lambda_lr", lambda_lr), ("kl_scale", kl_scale), ("noise_seed", noise_seed)):
+        if not value >= 0:  # noise_seed: −1 and −2 would draw the same noise (Python's hash(−1) is −2)
             raise ConfigError(f"model.{name} must be ≥ 0, got {value}")
 
 
@@ -161,7 +162,8 @@ class PretrainModule(L.LightningModule):
         super().__init__()
         if isinstance(world_model, Mapping):  # load_from_checkpoint of a module built without the CLI passes the dict
             world_model = WorldModelConfig.from_dict(world_model)
-        check_settings(world_model, k_max, lambda_init, kl_balance, hcu_target, lr, lambda_lr, grad_clip, kl_scale)
+        check_settings(world_model, k_max, lambda_init, kl_balance, hcu_target, lr, lambda_lr, grad_clip, kl_scale,
+                       noise_seed)
         self.save_hyperparameters()
         self.save_hyperparameters({"world_model": world_model.to_dict()})  # plain data: weights_only=True loads it
         self.automatic_optimization = False

@@ -143,6 +143,7 @@ def test_without_hcu_the_loss_is_the_elbo(small_sizes, fake_batch):
         ({}, dict(kl_balance=1.5), "kl_balance"),
         ({}, dict(lr=-1.0), "model.lr must be positive, got -1.0"),
         ({}, dict(lambda_lr=-1e-3), "model.lambda_lr must be ≥ 0"),
+        ({}, dict(noise_seed=-1), "model.noise_seed must be ≥ 0, got -1"),  # drew seed −2's noise
     ],
 )
 def test_bad_settings_are_refused(small_sizes, sizes, settings, message):
