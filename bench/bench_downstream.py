@@ -331,7 +331,9 @@ def main() -> int:
               "of that moment: the same command goes on from there", flush=True)
         status = 143
     names = args.runs if args.report and args.runs else list(plans)
-    report(args, names, references(args, args.eval_episodes, args.seed + 10_000))
+    from finetune.train import EVAL_SEED  # the runs' own evaluation seeds: the references play the same episodes
+
+    report(args, names, references(args, args.eval_episodes, args.seed + EVAL_SEED))
     if args.final_episodes and not status:
         final_report(args, names)
     return status

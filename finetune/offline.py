@@ -28,7 +28,8 @@ from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.run_dir import CHECKPOINT, exclusive, next_multiple, save_checkpoint
 from finetune.termination import Terminated, terminable
-from finetune.train import LogWindow, close_window, dataset_replay, scheduled_evaluation, start_run, task_env
+from finetune.train import (EVAL_SEED, LogWindow, close_window, dataset_replay, scheduled_evaluation, start_run,
+                            task_env)
 from finetune.world_model import Latent
 
 
@@ -52,7 +53,7 @@ def train_offline(cfg: FinetuneConfig, pretrained: str | Path | None = None, pro
     """Run (or resume) offline RL in cfg.logdir until cfg.steps updates; returns the last evaluation."""
     if cfg.paradigm != "offline":
         raise FinetuneError(f"train_offline needs paradigm 'offline', the config has {cfg.paradigm!r}")
-    with exclusive(Path(cfg.logdir)), contextlib.closing(task_env(cfg, cfg.seed + 10_000)) as eval_env:
+    with exclusive(Path(cfg.logdir)), contextlib.closing(task_env(cfg, cfg.seed + EVAL_SEED)) as eval_env:
         return run_offline(cfg, pretrained, progress, eval_env)
 
 
@@ -82,7 +83,7 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
                 bar.set_postfix(model_loss=f"{metrics['model_loss']:.1f}", u=f"{metrics['penalty_u_imagined']:.3g}")
                 counters["next_log"] = next_multiple(updates, cfg.log_every)
             if updates >= counters["next_eval"] or updates >= cfg.steps:
-                last_eval = scheduled_evaluation(agent, eval_env, cfg, cfg.seed + 10_000 + updates, counters,
+                last_eval = scheduled_evaluation(agent, eval_env, cfg, cfg.seed + EVAL_SEED + updates, counters,
                                                  fingerprint, logger, window, bar, progress)
             if updates >= counters["next_checkpoint"] or updates >= cfg.steps or stop.requested:
                 counters["next_checkpoint"] = next_multiple(updates, cfg.checkpoint_every)

@@ -38,9 +38,10 @@ from finetune.termination import StopRequest, Terminated, terminable
 from model.compiling import compile_mode
 
 ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this (env 0: the seed a single env gets)
+EVAL_SEED = 10_000  # a run's evaluation env plays from seed + this (+ the step of a reseeded evaluation)
 HELD_OUT_SEED = 1_000_000_000  # `hauwm finetune evaluate` plays from the run's seed + this: an env seed the run's
-#                                fresh envs (seed + i · ENV_SEED_STRIDE) and evaluations (seed + 10,000 + step) never
-#                                reach (its reseeded episodes, `episode_seed`, only by a 1-in-2^32 chance)
+#                                fresh envs (seed + i · ENV_SEED_STRIDE) and evaluations (seed + EVAL_SEED + step)
+#                                never reach (its reseeded episodes, `episode_seed`, only by a 1-in-2^32 chance)
 
 
 def episode_seed(run_seed: int, env: int, episodes: int) -> int:
@@ -366,7 +367,7 @@ def run(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bool, hook
     if not replay.load(int(counters["episodes"]), action_dim) and counters["episodes"]:
         print(f"note: {logdir / 'replay'} holds none of the {int(counters['episodes'])} episodes this run stored (moved "
               "or deleted?): it trains on the episodes it collects from here", file=sys.stderr)
-    eval_seed = cfg.seed + 10_000 + (0 if hooks.reseed else counters["env_step"])
+    eval_seed = cfg.seed + EVAL_SEED + (0 if hooks.reseed else counters["env_step"])
     with terminable() as stop, contextlib.closing(task_env(cfg, eval_seed)) as eval_env, \
             contextlib.closing(Logger(logdir, start=int(counters["env_step"]))) as logger:
         try:
@@ -456,7 +457,7 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
         if eval_due or checkpoint_due:
             train_due(cfg, agent, replay, counters, window)  # they see every update due so far, also with parallel envs
         if eval_due:
-            eval_seed = cfg.seed + 10_000 + step if reseed else None
+            eval_seed = cfg.seed + EVAL_SEED + step if reseed else None
             last_eval = scheduled_evaluation(agent, eval_env, cfg, eval_seed, counters, fingerprint, logger, window, bar,
                                              progress)
         if checkpoint_due:
