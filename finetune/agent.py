@@ -25,6 +25,7 @@ from finetune.behavior import ActorCritic
 from finetune.config import FinetuneConfig
 from finetune.world_model import DualStreamWorldModel, Latent, RewardFn, no_param_grads
 
+
 class DivergedError(FloatingPointError):
     """The actor gave a non-finite action: the agent's weights (or the latents they make) went NaN or inf."""
 

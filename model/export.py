@@ -154,7 +154,7 @@ def _check_frames(config: dict, path: Path) -> None:
                           f"{NORMALISATION['formula']}")
 
 
-def a_length(value: object) -> bool:
+def is_positive_length(value: object) -> bool:
     """Whether `value` (from JSON) is a positive, finite number of frames."""
     try:
         return type(value) in (int, float) and 0 < float(value) < math.inf
@@ -162,22 +162,22 @@ def a_length(value: object) -> bool:
         return False
 
 
-def whole(value: object) -> bool:
+def is_int(value: object) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def number(value: object) -> bool:
+def is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 # what `world_model_from_checkpoint` records, as the analysis and fine-tuning read it: (test, what it wants)
-PROVENANCE_KINDS = {"global_step": (whole, "a whole number"),
-                    "k_max": (lambda v: whole(v) and v >= 1, "a whole number ≥ 1"),
+PROVENANCE_KINDS = {"global_step": (is_int, "a whole number"),
+                    "k_max": (lambda v: is_int(v) and v >= 1, "a whole number ≥ 1"),
                     "hcu": (lambda v: isinstance(v, bool), "true or false"),
-                    "lambda_init": (number, "a number"),
-                    "lambda_final": (number, "a number"),
+                    "lambda_init": (is_number, "a number"),
+                    "lambda_final": (is_number, "a number"),
                     "checkpoint": (lambda v: isinstance(v, str), "a path"),
-                    "train_clip_length": (a_length, "a positive number of frames (the median length of the "
+                    "train_clip_length": (is_positive_length, "a positive number of frames (the median length of the "
                                           "pre-training clips)")}
 
 

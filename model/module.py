@@ -168,7 +168,7 @@ class PretrainModule(L.LightningModule):
         self.save_hyperparameters({"world_model": world_model.to_dict()})  # plain data: weights_only=True loads it
         self.automatic_optimization = False
         self.world_model = WorldModel(world_model)
-        self._clipped = list(self.world_model.parameters())  # walked once: the module tree is fixed, moves keep them
+        self._world_model_params = list(self.world_model.parameters())  # walked once: the module tree is fixed, moves keep them
         start = math.log(lambda_init) if lambda_init > 0 else 0.0
         # not trained by backprop: its gradient is set in closed form (dual_step), so DDP leaves it alone
         self.log_lambda = nn.Parameter(torch.tensor(start), requires_grad=False)
@@ -291,7 +291,7 @@ class PretrainModule(L.LightningModule):
 
     def clip_world_model_gradients(self) -> torch.Tensor:
         """Clip the world model's gradients to norm grad_clip → their norm before clipping (a device scalar)."""
-        return torch.nn.utils.clip_grad_norm_(self._clipped, self.hparams.grad_clip, foreach=True)
+        return torch.nn.utils.clip_grad_norm_(self._world_model_params, self.hparams.grad_clip, foreach=True)
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         """The median frame count of the clips trained on, where a ShardDataModule gives it: the export records it
