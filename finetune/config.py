@@ -99,7 +99,7 @@ class FinetuneConfig:
     #                                trajectory (LOMPO: per step for the whole batch) or from the heads' "mean"
     units: int = 400  # reward head, actor and critic: 2 hidden layers × 400 ELU
     noise_std: float = 0.01  # Gaussian noise on the frozen stream's k = 1 temporal embedding
-    k1_clip_length: float | None = None  # T of the relative k = 1 embedding; None: the export's median clip length
+    k1_clip_length: float | None = None  # T of the k = 1 embedding (relative exports only); None: the export's median
     #                                        (of its pre-training clips; the reference length if it has none)
     kl_balance: float = 0.8
     kl_scale: float = 1.0
