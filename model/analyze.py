@@ -142,13 +142,18 @@ ROLLOUT_PLOTS = "rollouts_*.png"  # one per model
 
 
 def check_out(out: Path, overwrite: bool) -> None:
-    """Refuse an --out that is no directory, or that holds an analysis already (without `overwrite`): its figures
-    would be replaced, and rollouts of models not analysed again would stay beside figures that do not list them."""
+    """Refuse an --out that is no directory, or that holds an analysis already, whole or in part (without
+    `overwrite`): its figures would be replaced, and its rollouts of models not analysed again deleted (they would
+    otherwise stay beside figures that do not list them)."""
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} is a file: analyze writes a directory of plots and {FIGURES}; pass another path")
     if not overwrite and (out / FIGURES).exists():
         raise ConfigError(f"--out {out} holds an analysis already ({FIGURES}): choose another --out, or pass "
                           "--overwrite to replace it")
+    plots = sorted(path.name for path in [*out.glob(ROLLOUT_PLOTS), out / HORIZON_PLOT] if path.exists())
+    if not overwrite and plots:
+        raise ConfigError(f"--out {out} holds plots of an analysis already ({', '.join(plots[:3])}; one stopped before "
+                          f"it wrote {FIGURES}?): choose another --out, or pass --overwrite to replace them")
 
 
 def check_memory(batches: int, batch_size: int, seq_len: int) -> None:

@@ -532,6 +532,12 @@ def test_analyze_replaces_an_earlier_analysis_only_when_asked_and_then_whole(bui
     assert len(json.loads((out / "figures.json").read_text())["models"]) == 1
     assert sorted(path.name for path in out.iterdir()) == [  # the first analysis's two rollouts are gone
         "disagreement_vs_k.png", "figures.json", f"rollouts_{tiny_export.name}.png"]
+    (out / "figures.json").unlink()  # an analysis stopped before its figures.json: its rollouts were deleted
+    (out / "rollouts_run_a.png").write_bytes(b"a user's plot")
+    assert main([*args, "--model", str(tiny_export)]) == 2
+    assert (f"--out {out} holds plots of an analysis already (disagreement_vs_k.png, rollouts_run_a.png, "
+            f"rollouts_{tiny_export.name}.png; one stopped before it wrote figures.json?)") in capsys.readouterr().err
+    assert (out / "rollouts_run_a.png").read_bytes() == b"a user's plot"
     (tmp_path / "file").write_text("a user's")
     assert main([*args[:-6], "--out", str(tmp_path / "file"), "--model", str(tiny_export)]) == 2
     assert "is a file: analyze writes a directory of plots" in capsys.readouterr().err
