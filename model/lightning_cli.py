@@ -151,7 +151,13 @@ def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
 def checkpoint_to_resume(config, subcommand: str) -> str | None:
     """The --ckpt_path a run resumes from, with `last` (Lightning's word for the newest) read as this run's
     last.ckpt, if it has one yet; a fresh fit where an earlier fit left its last.ckpt is refused (it would write
-    last-v1.ckpt beside it, and `--ckpt_path last` would then resume the old run)."""
+    last-v1.ckpt beside it, and `--ckpt_path last` would then resume the old run), and so is a fit resuming another
+    directory's checkpoint there (its last.ckpt would replace the earlier fit's)."""
+    for flag, value in (("--ckpt_path", config.get("ckpt_path")),
+                        ("--trainer.default_root_dir", config["trainer"].get("default_root_dir"))):
+        if value is not None and not str(value).strip():  # "" would resume nothing, or write into the current directory
+            raise ConfigError(f"{flag} is empty (an unset shell variable?): pass a path" +
+                              (", or `last` for the run's newest checkpoint" if flag == "--ckpt_path" else ""))
     ckpt_path, last = config.get("ckpt_path"), last_checkpoint(config["trainer"])
     if ckpt_path == "last":
         if not last.is_file():
@@ -169,6 +175,10 @@ def checkpoint_to_resume(config, subcommand: str) -> str | None:
     elif subcommand == "fit" and ckpt_path is None and last.is_file():
         raise ConfigError(f"{last.parent} holds the checkpoints of an earlier fit (last.ckpt): go on from it with "
                           "--ckpt_path last, or start afresh with another --trainer.default_root_dir")
+    elif subcommand == "fit" and last.is_file() and Path(ckpt_path).resolve().parent != last.parent.resolve():
+        raise ConfigError(f"{last.parent} holds the checkpoints of an earlier fit (last.ckpt), which resuming "
+                          f"{ckpt_path} there would replace: resume it with its own run's --trainer.default_root_dir, "
+                          "or in a new one")
     return ckpt_path
 
 

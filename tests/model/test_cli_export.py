@@ -386,6 +386,31 @@ def test_a_fresh_fit_where_an_earlier_fit_left_last_ckpt_is_refused(built_shards
         sorted(path.name for path in (tiny_run / "checkpoints").iterdir())
 
 
+def test_resuming_another_runs_checkpoint_over_a_runs_own_last_ckpt_is_refused(built_shards, tiny_run, tmp_path,
+                                                                                 capsys):
+    """Its last.ckpt replaced this directory's without a word, and `--ckpt_path last` then went on with the other run."""
+    shutil.copytree(tiny_run / "checkpoints", tmp_path / "run" / "checkpoints")
+    other = tmp_path / "other.ckpt"
+    shutil.copy(tiny_run / "checkpoints" / "last.ckpt", other)
+    before = (tmp_path / "run" / "checkpoints" / "last.ckpt").read_bytes()
+    assert fit(built_shards, tmp_path / "run", "--ckpt_path", str(other), "--trainer.max_steps", "30") == 2
+    assert (f"{tmp_path / 'run' / 'checkpoints'} holds the checkpoints of an earlier fit (last.ckpt), which resuming "
+            f"{other} there would replace") in capsys.readouterr().err
+    assert (tmp_path / "run" / "checkpoints" / "last.ckpt").read_bytes() == before
+
+
+@pytest.mark.parametrize("flag", ["--ckpt_path", "--trainer.default_root_dir"])
+def test_an_empty_path_flag_of_fit_is_refused(built_shards, tmp_path, flag, capsys, monkeypatch):
+    """An unset shell variable: --ckpt_path "" ended in a traceback from Lightning; --trainer.default_root_dir ""
+    wrote checkpoints/ and lightning_logs/ into the current directory."""
+    monkeypatch.chdir(tmp_path)
+    args = ["fit", "--config", str(TINY_CONFIG), "--data.shards", str(built_shards), "--trainer.max_steps", "1",
+            "--trainer.default_root_dir", str(tmp_path / "run"), *RUN_ARGS, flag, ""]
+    assert main(args) == 2
+    assert f"{flag} is empty (an unset shell variable?): pass a path" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
 def test_an_export_is_not_replaced_without_overwrite(tiny_run, tiny_export, tmp_path, capsys):
     out = tmp_path / "export"
     shutil.copytree(tiny_export, out)
