@@ -37,10 +37,16 @@ class AtomicCheckpointIO(TorchCheckpointIO):
             return super().save_checkpoint(checkpoint, path, storage_options)
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        with written_whole(path) as partial, open(partial, "wb") as file:  # Ctrl-C or a full disk: the old one stays
-            torch.save(checkpoint, file)
-            file.flush()
-            os.fsync(file.fileno())
+        try:
+            with written_whole(path) as partial, open(partial, "wb") as file:  # Ctrl-C, a full disk: the old one stays
+                torch.save(checkpoint, file)
+                file.flush()
+                os.fsync(file.fileno())
+        except RuntimeError as error:  # torch's zip writer reports a failed write (a full disk) as a RuntimeError
+            if not isinstance(error.__context__, OSError):
+                raise
+            failed = error.__context__
+            raise OSError(failed.errno, failed.strerror, str(path)) from None
 
 
 class LastStepCheckpoint(Callback):

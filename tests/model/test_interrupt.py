@@ -5,6 +5,7 @@ that step's validation, if it has one) and exits with 143. Checkpoints are writt
 
 from __future__ import annotations
 
+import errno
 import multiprocessing
 import os
 import signal
@@ -189,6 +190,40 @@ def test_a_checkpoint_is_written_whole_beside_the_old_one_then_renamed(tmp_path,
     AtomicCheckpointIO().save_checkpoint({"global_step": 2}, path)
     assert seen == [(str(path.parent), 1)]  # written in the checkpoint's own directory; the old one whole till then
     assert torch.load(path, weights_only=False)["global_step"] == 2 and os.listdir(path.parent) == ["last.ckpt"]
+
+
+def test_a_checkpoint_write_stopped_by_a_full_disk_says_so_in_one_line(tmp_path, monkeypatch, capsys):
+    """torch's zip writer turns the OSError of a full disk into a RuntimeError ("unexpected pos"), which `hauwm` did
+    not take for a full disk: a 70-line traceback and exit status 1."""
+    from hauwm.cli import main
+    from model.checkpointing import AtomicCheckpointIO
+
+    path = tmp_path / "checkpoints" / "last.ckpt"
+    AtomicCheckpointIO().save_checkpoint({"global_step": 1}, path)
+
+    def full_disk(obj, file):
+        file.write(b"PK" * 50)
+        try:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        except OSError:
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 3629504 vs 3629396")
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(OSError) as raised:
+        AtomicCheckpointIO().save_checkpoint({"global_step": 2}, path)
+    assert raised.value.errno == errno.ENOSPC and raised.value.filename == str(path)
+    assert os.listdir(path.parent) == ["last.ckpt"] and torch.load(path, weights_only=False)["global_step"] == 1
+
+    class Stage:  # a stage whose fit fails so
+        @staticmethod
+        def main(argv):
+            AtomicCheckpointIO().save_checkpoint({"global_step": 2}, path)
+
+    monkeypatch.setattr("importlib.import_module", lambda name: Stage)
+    assert main(["pretrain", "fit"]) == 2
+    assert capsys.readouterr().err.strip() == (f"hauwm pretrain: error: no space left on the device while writing {path}: "
+                                               "free some space, then run the same command again (a fit goes on from "
+                                               "its last checkpoint with --ckpt_path last)")
 
 
 def test_a_checkpoint_write_stopped_by_ctrl_c_leaves_the_old_one_and_nothing_beside_it(tmp_path, monkeypatch):
