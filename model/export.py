@@ -19,6 +19,7 @@ import contextlib
 import json
 import math
 import pickle
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -243,7 +244,10 @@ def read_checkpoint(checkpoint: str | Path) -> tuple[dict[str, Any], WorldModelC
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
         raise ExportError(f"{path} cannot be read as a Lightning checkpoint of `hauwm pretrain fit` "
-                          f"({torch_load_failure(err)}); use another one, e.g. RUN/checkpoints/last.ckpt") from None
+                          f"({torch_load_failure(err)}); {another_checkpoint(path)}") from None
+    if damaged := damaged_record(path):  # torch.load reads bytes changed in place (a disk, a copy) without a word
+        raise ExportError(f"{path} is damaged: its record {damaged} fails its checksum (a disk or copy error); "
+                          f"{another_checkpoint(path)}")
     if not (isinstance(state, dict) and {"state_dict", "hyper_parameters", "pytorch-lightning_version"} <= state.keys()):
         raise ExportError(f"{path} is not a Lightning checkpoint (it lacks state_dict, hyper_parameters or "
                           "pytorch-lightning_version); use one that `hauwm pretrain fit` wrote, e.g. RUN/checkpoints/last.ckpt")
@@ -252,6 +256,24 @@ def read_checkpoint(checkpoint: str | Path) -> tuple[dict[str, Any], WorldModelC
     except ConfigError as err:
         raise ExportError(f"{path} is not a `hauwm pretrain fit` checkpoint (its hyper_parameters: {err})") from None
     return state, config
+
+
+def damaged_record(path: Path) -> str | None:
+    """The first record of a checkpoint (a zip archive, as torch.save writes them) whose data fails its CRC-32, None
+    where all pass (or the file is not a zip: torch's legacy format)."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return archive.testzip()
+    except zipfile.BadZipFile:
+        return None
+
+
+def another_checkpoint(path: Path) -> str:
+    """Advice for a checkpoint that cannot be used: the newest other checkpoint beside it, where there is one."""
+    others = sorted((other for other in path.parent.glob("*.ckpt") if other.name != path.name),
+                    key=lambda other: other.stat().st_mtime)
+    return f"use another one, e.g. {others[-1]} (the newest beside it)" if others else \
+        "use another one, e.g. RUN/checkpoints/last.ckpt"
 
 
 def checkpoint_world_model(state: dict[str, Any], config: WorldModelConfig, path: Path) -> WorldModel:
