@@ -38,7 +38,7 @@ from hauwm.atomic import written_whole
 from hauwm.messages import first_line
 from hauwm.pid_lock import LockHeld, pid_lock
 from model.config import ConfigError
-from model.export import WEIGHTS_FILE, non_finite, torch_load_failure
+from model.export import WEIGHTS_FILE, damaged_record, non_finite, torch_load_failure
 
 CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"  # the agent at its best evaluation so far (keep_best)
@@ -166,6 +166,9 @@ def read_state(path: Path, cfg: FinetuneConfig, fingerprint: Fingerprint, remedy
         state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)  # best.pt at start: counters only
     except Exception as err:
         raise FinetuneError(f"{path} cannot be read ({torch_load_failure(err)}): {remedy}") from None
+    if damaged := damaged_record(path):  # torch.load reads bytes changed in place (a disk, a copy) without a word
+        raise FinetuneError(f"{path} is damaged: its record {damaged} fails its checksum (a disk or copy error): "
+                            f"{remedy}")
     if not (isinstance(state, dict) and {"agent", "config", "counters", "export_sha256"} <= state.keys()):
         what = f"keys {', '.join(sorted(map(str, state))[:4])}" if isinstance(state, dict) else type(state).__name__
         raise FinetuneError(f"{path} is not a checkpoint of `hauwm finetune` (it holds {what}): {remedy}")

@@ -6,6 +6,8 @@
   removed from the label files), train and validation, `--clips-per-shard 4`: train has 5 shards of
   4, 4, 4, 4, 2 clips, validation one shard of 3 clips. Clips have 24–60 frames at 64×64.
 - `as_v1_export(export, out)`: a copy of a model export with config.json in the old schema_version 1 layout.
+- `damaged_in_place(checkpoint, out)`: a copy of a torch checkpoint with 8 bytes changed inside its largest record
+  (a disk or copy error: torch.load reads it without a word); → the record's name.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import logging
 import shutil
 import signal
 import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -88,3 +91,19 @@ def as_v1_export():
         return out
 
     return rewrite
+
+
+@pytest.fixture
+def damaged_in_place():
+    def damage(checkpoint: Path, out: Path) -> str:
+        data = bytearray(checkpoint.read_bytes())
+        with zipfile.ZipFile(checkpoint) as archive:
+            record = max(archive.infolist(), key=lambda info: info.file_size)
+        header = record.header_offset  # a local file header: 30 bytes, then the name and the extra field
+        start = header + 30 + int.from_bytes(data[header + 26:header + 28], "little") + \
+            int.from_bytes(data[header + 28:header + 30], "little") + record.file_size // 2
+        data[start:start + 8] = bytes.fromhex("0000803f0000803f")  # two float32 ones: finite, plausible
+        out.write_bytes(bytes(data))
+        return record.filename
+
+    return damage

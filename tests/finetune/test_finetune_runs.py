@@ -14,7 +14,7 @@ from finetune.cli import best_kept, main
 from finetune.config import FinetuneError, load_config
 from finetune.agent import Agent
 from finetune.envs.base import PixelEnv
-from finetune.run_dir import (BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, resume,
+from finetune.run_dir import (BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, read_state, resume,
                                run_config, run_fingerprint, save_checkpoint)
 from finetune.train import (build_agent, evaluate, incomparable_returns_note, resolve_device, start_run, task_env,
                             train)
@@ -438,3 +438,15 @@ def test_config_yaml_cut_short_by_a_full_disk_keeps_the_one_before(tiny_config, 
     with pytest.raises(OSError, match="No space left"):
         resume(cfg, agent, fingerprint, {"env_step": 0}, np.random.default_rng(0))
     assert (tmp_path / "config.yaml").read_text() == before and not list(tmp_path.glob(".*.partial"))
+
+
+def test_a_checkpoint_damaged_in_place_is_refused(tiny_config, tmp_path, damaged_in_place):
+    """torch.load reads a checkpoint whose bytes changed in place (a disk or copy error) without a word."""
+    cfg = tiny_config(agent="scratch", logdir=str(tmp_path))
+    agent, fingerprint = build_agent(cfg, 1, None, torch.device("cpu")), run_fingerprint(cfg, None)
+    save_checkpoint(tmp_path / "whole.pt", agent, cfg, {"env_step": 100}, fingerprint)
+    record = damaged_in_place(tmp_path / "whole.pt", tmp_path / CHECKPOINT)
+    assert read_state(tmp_path / "whole.pt", cfg, fingerprint)["counters"] == {"env_step": 100}
+    with pytest.raises(FinetuneError, match=f"{CHECKPOINT} is damaged: its record {record} fails its checksum "
+                                            r"\(a disk or copy error\): restore it, or train in another --logdir"):
+        read_state(tmp_path / CHECKPOINT, cfg, fingerprint)

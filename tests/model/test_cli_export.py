@@ -10,7 +10,6 @@ import pickle
 import re
 import shutil
 import warnings
-import zipfile
 from pathlib import Path
 
 import lightning
@@ -455,27 +454,21 @@ def test_an_export_stopped_while_writing_leaves_the_old_one_whole(tiny_run, tiny
     assert {path.name: path.read_bytes() for path in out.iterdir()} == before  # and no partial file left
 
 
-def test_a_checkpoint_damaged_in_place_is_refused_by_export_and_resume(built_shards, tiny_run, tmp_path, capsys):
+def test_a_checkpoint_damaged_in_place_is_refused_by_export_and_resume(built_shards, tiny_run, tmp_path, capsys,
+                                                                        damaged_in_place):
     """Bytes changed inside a tensor's record (a disk or copy error) were exported and resumed without a word: torch
     does not check the zip's CRC-32s."""
     run = tmp_path / "run" / "checkpoints"
     shutil.copytree(tiny_run / "checkpoints", run)
     damaged = run / "damaged.ckpt"
-    data = bytearray((run / "last.ckpt").read_bytes())
-    with zipfile.ZipFile(run / "last.ckpt") as archive:
-        record = max(archive.infolist(), key=lambda info: info.file_size)  # the largest tensor's
-    names_and_extra = int.from_bytes(data[record.header_offset + 26:record.header_offset + 28], "little") + \
-        int.from_bytes(data[record.header_offset + 28:record.header_offset + 30], "little")
-    start = record.header_offset + 30 + names_and_extra + record.file_size // 2
-    data[start:start + 8] = bytes.fromhex("0000803f0000803f")  # two float32 ones: finite, plausible
-    damaged.write_bytes(bytes(data))
+    record = damaged_in_place(run / "last.ckpt", damaged)
     newest = max((path for path in run.glob("*.ckpt") if path != damaged), key=lambda path: path.stat().st_mtime)
     assert main(["export", str(damaged), "--out", str(tmp_path / "out")]) == 2
-    assert (f"{damaged} is damaged: its record {record.filename} fails its checksum (a disk or copy error); use "
+    assert (f"{damaged} is damaged: its record {record} fails its checksum (a disk or copy error); use "
             f"another one, e.g. {newest} (the newest beside it)") in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
     assert fit(built_shards, tmp_path / "run", "--ckpt_path", str(damaged), "--trainer.max_steps", "30") == 2
-    assert f"{damaged} is damaged: its record {record.filename} fails its checksum" in capsys.readouterr().err
+    assert f"{damaged} is damaged: its record {record} fails its checksum" in capsys.readouterr().err
 
 
 def test_export_of_a_missing_or_damaged_checkpoint_is_refused(built_shards, tiny_run, tmp_path, capsys):
