@@ -4,6 +4,7 @@ LightningCLI turns --config files and flags into the module (model.*), the data 
 (trainer.*). PretrainCLI adds what a user needs before anything is built, each step a function below:
   resume            `--ckpt_path last`, and a checkpoint of another model or with changed settings refused by name
   trainer settings  the ones the step cannot honour (precision, accumulation, clipping, no GPU) refused by flag
+  one fit at a time a second single-process fit into a checkpoint directory in use refused (`FIT_LOCK`)
   engineering       atomic checkpoints, a checkpoint at the last step and on SIGTERM (on every DDP rank after the
                     same step), the step progress bar, the resume notice (model/checkpointing.py, model/sigterm.py,
                     model/interrupt.py, model/progress.py)
@@ -12,6 +13,7 @@ LightningCLI turns --config files and flags into the module (model.*), the data 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import difflib
 import logging
@@ -28,6 +30,7 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
 from data_pipeline.datamodule import ShardDataModule
+from hauwm.pid_lock import LockHeld, pid_lock
 from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
 from model.cli import refuse_other_frame_size
 from model.config import ConfigError, WorldModelConfig, read_config_file
@@ -289,9 +292,13 @@ def settle_trainer(trainer, subcommand: str) -> None:
 # -- the CLI ------------------------------------------------------------------------------------------
 
 
+FIT_LOCK = ".fit.lock"  # in a fit's checkpoint directory while it runs: its pid (hauwm/pid_lock.py)
+
+
 class PretrainCLI(LightningCLI):
-    def __init__(self, *args, notice: ResumeNotice, **kwargs):
+    def __init__(self, *args, notice: ResumeNotice, held: contextlib.ExitStack, **kwargs):
         self.notice = notice  # LightningCLI parses, builds and runs inside __init__
+        self.held = held  # what the fit holds while it runs (its directory's lock), let go when the call ends
         super().__init__(*args, **kwargs)
 
     def parse_arguments(self, parser, args: list[str]) -> None:
@@ -352,6 +359,8 @@ class PretrainCLI(LightningCLI):
         for callback in self.trainer.checkpoint_callbacks:
             if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
                 callback.dirpath = str(checkpoint_dir(self.trainer.default_root_dir))
+        if self.trainer.world_size == 1:  # one process (a DDP job's ranks are several, which one lock cannot tell apart)
+            self.lock_checkpoint_directory(last_checkpoint(self.config["fit"]["trainer"]).parent)
         callbacks = self.trainer.callbacks
         for index, callback in enumerate(callbacks):  # Lightning's own default bar; a user's choice stays
             if type(callback) in (RichProgressBar, TQDMProgressBar):
@@ -363,6 +372,25 @@ class PretrainCLI(LightningCLI):
         callbacks.append(self.notice)  # with or without a progress bar
         if type(self.trainer.strategy.checkpoint_io) is TorchCheckpointIO:  # a user's own plugin stays
             self.trainer.strategy.checkpoint_io = AtomicCheckpointIO()
+
+    def lock_checkpoint_directory(self, directory: Path) -> None:
+        """Refuse a fit into a checkpoint directory another fit is writing: both wrote last.ckpt through the same
+        partial file, and the one that ended last left its own (the other's steps lost without a word)."""
+        if not directory.is_dir():  # made for the lock: gone again if the fit wrote nothing into it
+
+            def remove_if_empty() -> None:
+                if not any(directory.iterdir()):
+                    directory.rmdir()
+
+            directory.mkdir(parents=True)
+            self.held.callback(remove_if_empty)
+        lock = directory / FIT_LOCK
+        try:
+            self.held.enter_context(pid_lock(lock))
+        except LockHeld as holder:
+            raise ConfigError(f"{directory} is in use by another fit (pid {holder.pid}): wait for it to end, or give "
+                              "this one another --trainer.default_root_dir") from None
+        self.held.callback(lock.unlink, missing_ok=True)  # before the lock is let go (callbacks run last in, first out)
 
 
 def not_an_advert(record: logging.LogRecord) -> bool:
@@ -387,16 +415,19 @@ def lightning_cli(args: list[str]) -> PretrainCLI:
     logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(not_an_advert)  # once, however often called
     notice = ResumeNotice()
     try:
-        return PretrainCLI(
-            PretrainModule,
-            ShardDataModule,
-            notice=notice,
-            args=args,
-            save_config_kwargs={"overwrite": True},
-            auto_configure_optimizers=False,  # the module's own two Adams (manual optimisation): no --optimizer flags
-            parser_kwargs={"prog": "hauwm pretrain", "allow_abbrev": False,  # `--trainer.max_step` is no max_steps
-                           "description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video shards."},
-        )
+        with contextlib.ExitStack() as held:
+            return PretrainCLI(
+                PretrainModule,
+                ShardDataModule,
+                notice=notice,
+                held=held,
+                args=args,
+                save_config_kwargs={"overwrite": True},
+                auto_configure_optimizers=False,  # the module's own two Adams (manual optimisation): no --optimizer
+                parser_kwargs={"prog": "hauwm pretrain", "allow_abbrev": False,  # `--trainer.max_step` is no max_steps
+                               "description": "Pre-train the HAUWM world model (ensemble RSSM + HCU loss) on video "
+                                              "shards."},
+            )
     except SystemExit:
         if notice.exit_code:  # Lightning's sys.exit(1) after Ctrl-C, or its SIGTERMException
             raise FitInterrupted(notice.exit_code) from None

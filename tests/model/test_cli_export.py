@@ -19,6 +19,7 @@ import yaml
 from safetensors.torch import load_file, save_file
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from hauwm.pid_lock import pid_lock
 from model.cli import main
 from model.export import ExportError, FrozenWorldModel, load_frozen
 from model.module import PretrainModule
@@ -384,6 +385,20 @@ def test_a_fresh_fit_where_an_earlier_fit_left_last_ckpt_is_refused(built_shards
             "--ckpt_path last") in capsys.readouterr().err
     assert sorted(path.name for path in (tmp_path / "checkpoints").iterdir()) == \
         sorted(path.name for path in (tiny_run / "checkpoints").iterdir())
+
+
+def test_a_second_fit_into_a_checkpoint_directory_in_use_is_refused(built_shards, tmp_path, capsys):
+    """Two fits into one directory both ran: they wrote last.ckpt through the same partial file (one then failed)
+    or the one that ended last left its own, the other's steps lost without a word."""
+    checkpoints = tmp_path / "run" / "checkpoints"
+    checkpoints.mkdir(parents=True)
+    with pid_lock(checkpoints / ".fit.lock"):  # a fit of another process, as far as the lock goes
+        assert fit(built_shards, tmp_path / "run", "--trainer.max_steps", "2") == 2
+    assert (f"{checkpoints} is in use by another fit (pid {os.getpid()}): wait for it to end, or give this one "
+            "another --trainer.default_root_dir") in capsys.readouterr().err
+    assert not list(checkpoints.glob("*.ckpt"))
+    assert fit(built_shards, tmp_path / "run", "--trainer.max_steps", "2") == 0  # once it has ended
+    assert sorted(path.name for path in checkpoints.iterdir()) == ["last.ckpt"]  # the lock goes with the fit
 
 
 def test_resuming_another_runs_checkpoint_over_a_runs_own_last_ckpt_is_refused(built_shards, tiny_run, tmp_path,
