@@ -268,11 +268,16 @@ def damaged_record(path: Path) -> str | None:
         return None
 
 
+def newest_checkpoint(directory: Path, other_than: Path | None = None) -> Path | None:
+    """The checkpoint (*.ckpt) written last in `directory`, `other_than` left out; None where there is none."""
+    others = [path for path in directory.glob("*.ckpt") if other_than is None or path.name != other_than.name]
+    return max(others, key=lambda path: path.stat().st_mtime, default=None)
+
+
 def another_checkpoint(path: Path) -> str:
     """Advice for a checkpoint that cannot be used: the newest other checkpoint beside it, where there is one."""
-    others = sorted((other for other in path.parent.glob("*.ckpt") if other.name != path.name),
-                    key=lambda other: other.stat().st_mtime)
-    return f"use another one, e.g. {others[-1]} (the newest beside it)" if others else \
+    newest = newest_checkpoint(path.parent, other_than=path)
+    return f"use another one, e.g. {newest} (the newest beside it)" if newest else \
         "use another one, e.g. RUN/checkpoints/last.ckpt"
 
 

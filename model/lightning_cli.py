@@ -34,7 +34,7 @@ from hauwm.pid_lock import LockHeld, pid_lock
 from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
 from model.cli import refuse_other_frame_size
 from model.config import ConfigError, WorldModelConfig, read_config_file
-from model.export import checkpoint_world_model, read_checkpoint
+from model.export import checkpoint_world_model, newest_checkpoint, read_checkpoint
 from model.interrupt import FitInterrupted, ResumeNotice
 from model.module import PretrainModule, refuse_other_size
 from model.progress import StepProgressBar
@@ -165,10 +165,10 @@ def checkpoint_to_resume(config, subcommand: str) -> str | None:
     if ckpt_path == "last":
         if not last.is_file():
             # written by a config without a save-last ModelCheckpoint (none where there is no directory)
-            if others := sorted(last.parent.glob("*.ckpt"), key=lambda path: path.stat().st_mtime):
+            if newest := newest_checkpoint(last.parent):
                 raise ConfigError(f"--ckpt_path last: {last.parent} holds checkpoints but no last.ckpt (the config's "
                                   "trainer.callbacks have no ModelCheckpoint with save_last: true); go on from the "
-                                  f"newest with --ckpt_path {others[-1]}, and add such a ModelCheckpoint to the config")
+                                  f"newest with --ckpt_path {newest}, and add such a ModelCheckpoint to the config")
             if subcommand == "validate":  # it would score a freshly initialised model
                 raise ConfigError(f"--ckpt_path last: no {last}: nothing to validate; pass the run's "
                                   "--trainer.default_root_dir, or a checkpoint file as --ckpt_path")
