@@ -1,7 +1,10 @@
 """One process at a time: an exclusive lock on a file that holds its holder's pid (the kernel releases the lock of
-a process that dies, killed or not), for a fine-tuning run's directory and a dataset being written.
+a process that dies, killed or not), for a fine-tuning run's directory, a dataset being written and a fit's
+checkpoint directory.
 
     with pid_lock(path):      # LockHeld(pid) where another process holds it
+        ...
+    with locked(path, refused):  # the same, `refused(pid)` raised instead, and the file deleted when the block ends
         ...
     lock_holder(path)         # the pid holding it now, None where none does
 
@@ -14,7 +17,7 @@ import contextlib
 import fcntl
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
 
@@ -48,6 +51,22 @@ def pid_lock(path: Path) -> Iterator[None]:
         lock.write(str(os.getpid()))
         lock.flush()
         yield
+
+
+@contextlib.contextmanager
+def locked(path: Path, refused: Callable[[str], Exception]) -> Iterator[None]:
+    """Hold `pid_lock(path)` (its directory made where needed) while the block runs, and delete the file before
+    letting go; where another process holds it, raise `refused(its pid)`: the caller's error, naming what to do."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with contextlib.ExitStack() as held:
+        try:
+            held.enter_context(pid_lock(path))
+        except LockHeld as other:
+            raise refused(other.pid) from None
+        try:
+            yield
+        finally:
+            path.unlink(missing_ok=True)
 
 
 def _flock_soon(lock: IO) -> bool:

@@ -30,7 +30,7 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
 from data_pipeline.datamodule import ShardDataModule
-from hauwm.pid_lock import LockHeld, pid_lock
+from hauwm.pid_lock import locked
 from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
 from model.cli import refuse_other_frame_size
 from model.config import ConfigError, WorldModelConfig, read_config_file
@@ -384,13 +384,9 @@ class PretrainCLI(LightningCLI):
 
             directory.mkdir(parents=True)
             self.held.callback(remove_if_empty)
-        lock = directory / FIT_LOCK
-        try:
-            self.held.enter_context(pid_lock(lock))
-        except LockHeld as holder:
-            raise ConfigError(f"{directory} is in use by another fit (pid {holder.pid}): wait for it to end, or give "
-                              "this one another --trainer.default_root_dir") from None
-        self.held.callback(lock.unlink, missing_ok=True)  # before the lock is let go (callbacks run last in, first out)
+        self.held.enter_context(locked(directory / FIT_LOCK, lambda pid: ConfigError(
+            f"{directory} is in use by another fit (pid {pid}): wait for it to end, or give this one another "
+            "--trainer.default_root_dir")))
 
 
 def not_an_advert(record: logging.LogRecord) -> bool:

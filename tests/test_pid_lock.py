@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from hauwm.pid_lock import LockHeld, lock_holder, pid_lock
+from hauwm.pid_lock import LockHeld, lock_holder, locked, pid_lock
 
 
 def test_a_second_holder_is_refused_with_the_first_ones_pid_and_the_lock_goes_with_its_holder(tmp_path):
@@ -36,3 +36,17 @@ def test_a_lock_asked_for_while_lock_holder_looks_is_not_refused(tmp_path):
     threading.Timer(0.05, looking.close).start()  # and lets go an instant later
     with pid_lock(path):  # LockHeld('?') before
         assert path.read_text() == str(os.getpid())
+
+
+def test_locked_raises_the_callers_error_and_deletes_its_file(tmp_path):
+    path = tmp_path / "made" / ".lock"
+
+    def busy(pid: str) -> ValueError:
+        return ValueError(f"busy: {pid}")
+
+    with locked(path, busy):
+        assert lock_holder(path) == os.getpid()
+        with pytest.raises(ValueError, match=f"^busy: {os.getpid()}$"), locked(path, busy):
+            pass
+        assert path.exists()  # the refused one leaves the holder's file
+    assert not path.exists() and path.parent.is_dir()

@@ -37,7 +37,7 @@ import numpy as np
 from tqdm import tqdm
 
 from finetune.termination import signals_deferred
-from hauwm.pid_lock import LockHeld, lock_holder, pid_lock
+from hauwm.pid_lock import lock_holder, locked
 
 IMAGE_SIZE = 64  # the frames the world model is trained on (model.networks.IMAGE_SHAPE, not imported: it imports torch)
 IMAGE_KEYS = ("pixels", "image", "rgb", "observation", "obs")  # Dict observation entries tried in this order
@@ -229,18 +229,10 @@ def writing(dataset_id: str) -> Iterator[None]:
     """Hold the writer's lock of `dataset_id` (`hauwm.pid_lock` on `writer_lock`) while the block runs: two writers of
     one new ID both crashed, and the one refused by Minari deleted what the other had written. A second writer is
     refused (DatasetError), and `lock_holder` tells a dataset being written from one whose writer was killed."""
-    path = writer_lock(dataset_id)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with contextlib.ExitStack() as held:
-        try:
-            held.enter_context(pid_lock(path))
-        except LockHeld as other:
-            raise DatasetError(f"dataset {dataset_id!r} is being written by another process (pid {other.pid}): wait "
-                               "for it to finish, or use another ID") from None
-        try:
-            yield
-        finally:
-            path.unlink(missing_ok=True)
+    with locked(writer_lock(dataset_id), lambda pid: DatasetError(
+            f"dataset {dataset_id!r} is being written by another process (pid {pid}): wait for it to finish, or use "
+            "another ID")):
+        yield
 
 
 def hauwm_metadata(dataset) -> dict[str, Any]:
