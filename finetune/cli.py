@@ -114,7 +114,7 @@ def evaluate_run(argv: list[str]) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     from finetune.agent import DivergedError
-    from finetune.config import PARADIGM_SETTINGS, FinetuneConfig, FinetuneError, load_config, parse_override
+    from finetune.config import FinetuneConfig, FinetuneError, load_config, others_settings, parse_override
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
     from finetune.run_dir import CHECKPOINT
@@ -145,9 +145,9 @@ def main(argv: list[str] | None = None) -> int:
                               f"`{COMMANDS[cfg.paradigm]} --config {args.config} …`, or give `{COMMANDS[paradigm]}` "
                               f"a config from {CONFIG_DIRS[paradigm]}/")
         defaults = FinetuneConfig()
-        for owner, settings in PARADIGM_SETTINGS.items():  # set (file, --set) for a run that would ignore it
-            if owner != paradigm and (given := [key for key in settings if getattr(cfg, key) != getattr(defaults, key)]):
-                raise ConfigError(f"setting {given[0]} belongs to `{COMMANDS[owner]}`, not to `{COMMANDS[paradigm]}`: "
+        for key, owner in others_settings(paradigm).items():  # set (file, --set) for a run that would ignore it
+            if getattr(cfg, key) != getattr(defaults, key):
+                raise ConfigError(f"setting {key} belongs to `{COMMANDS[owner]}`, not to `{COMMANDS[paradigm]}`: "
                                   "drop it")
         pretrained = args.pretrained
         if cfg.paradigm == "offline" and cfg.num_envs != 1:  # it steps no training env; a user would expect speed

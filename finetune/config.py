@@ -26,6 +26,12 @@ PARADIGMS = ("online", "offline", "imitation")
 # the settings only one paradigm reads (the others' runs would ignore them)
 PARADIGM_SETTINGS = {"offline": ("dataset", "penalty", "penalty_scale", "penalty_frozen_weight"),
                      "imitation": ("demos", "demo_fraction", "disc_lr", "disc_gp_scale", "expert_latents")}
+
+
+def others_settings(paradigm: str) -> dict[str, str]:
+    """The settings a `paradigm` run does not read, as another paradigm's: setting -> that paradigm."""
+    return {key: owner for owner, keys in PARADIGM_SETTINGS.items() if owner != paradigm for key in keys}
+
 PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
 # settings that take one of a few words
 CHOICES: dict[str, tuple[str, ...]] = {

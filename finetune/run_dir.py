@@ -33,7 +33,7 @@ import torch
 import yaml
 
 from finetune.agent import Agent, DivergedError
-from finetune.config import PARADIGM_SETTINGS, FinetuneConfig, FinetuneError, load_config, step_unit
+from finetune.config import FinetuneConfig, FinetuneError, load_config, others_settings, step_unit
 from hauwm.atomic import written_whole
 from hauwm.messages import first_line
 from hauwm.pid_lock import LockHeld, pid_lock
@@ -211,7 +211,7 @@ def changed_settings(cfg: FinetuneConfig, written: dict[str, object]) -> list[st
     """`key=written (asked: cfg's)` for each setting outside RESUMABLE whose value in `written` is not cfg's; the
     settings only another paradigm reads do not count (a run recorded them, and ignored them, before they were
     refused: `hauwm finetune` now refuses them, so the resume must go on without them)."""
-    unread = {key for owner, keys in PARADIGM_SETTINGS.items() if owner != cfg.paradigm for key in keys}
+    unread = others_settings(cfg.paradigm)
     keys = [key for key in written if key not in RESUMABLE and key not in unread]
     return [f"{key}={value!r} (asked: {getattr(cfg, key)!r})" for key, value in differing_settings(cfg, written, keys)]
 
