@@ -359,7 +359,7 @@ class PretrainCLI(LightningCLI):
         for callback in self.trainer.checkpoint_callbacks:
             if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
                 callback.dirpath = str(checkpoint_dir(self.trainer.default_root_dir))
-        if self.trainer.world_size == 1:  # one process (a DDP job's ranks are several, which one lock cannot tell apart)
+        if self.trainer.global_rank == 0:  # a DDP job's rank 0 holds it for the job, before it starts the other ranks
             self.lock_checkpoint_directory(last_checkpoint(self.config["fit"]["trainer"]).parent)
         callbacks = self.trainer.callbacks
         for index, callback in enumerate(callbacks):  # Lightning's own default bar; a user's choice stays

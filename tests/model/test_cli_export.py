@@ -401,6 +401,17 @@ def test_a_second_fit_into_a_checkpoint_directory_in_use_is_refused(built_shards
     assert sorted(path.name for path in checkpoints.iterdir()) == ["last.ckpt"]  # the lock goes with the fit
 
 
+def test_a_ddp_job_into_a_checkpoint_directory_in_use_is_refused(built_shards, tmp_path, capsys):
+    """Its rank 0 takes the lock before it starts the other ranks: a DDP job took none, and wrote over the other fit."""
+    checkpoints = tmp_path / "run" / "checkpoints"
+    checkpoints.mkdir(parents=True)
+    with pid_lock(checkpoints / ".fit.lock"):
+        assert fit(built_shards, tmp_path / "run", "--trainer.max_steps", "2", "--trainer.devices", "2",
+                   "--trainer.strategy", "ddp") == 2
+    assert f"{checkpoints} is in use by another fit (pid {os.getpid()})" in capsys.readouterr().err
+    assert not list(checkpoints.glob("*.ckpt"))
+
+
 def test_resuming_another_runs_checkpoint_over_a_runs_own_last_ckpt_is_refused(built_shards, tiny_run, tmp_path,
                                                                                  capsys):
     """Its last.ckpt replaced this directory's without a word, and `--ckpt_path last` then went on with the other run."""
