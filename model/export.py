@@ -3,7 +3,8 @@
     DIR/weights.safetensors   the WorldModel's state dict (encoder, rssm, decoder; float32)
     DIR/config.json           schema_version 2: the WorldModelConfig under "world_model" (sizes, M, the temporal
                               embedding's mode, dim and reference length), feature_dim, image_shape, the image
-                              normalisation, provenance
+                              normalisation, provenance, and weights_sha256 (the weights file's, checked on load;
+                              absent from exports written before it)
 
 Schema version 1 (exports before WorldModelConfig) held the world_model keys flat at the top level; it is
 still read, and read_config hands both versions back in the version-2 layout.
@@ -16,7 +17,9 @@ against the architecture the config describes.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
+import re
 import math
 import pickle
 import zipfile
@@ -26,7 +29,7 @@ from typing import Any
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save
+from safetensors.torch import load, save
 
 from hauwm.atomic import written_whole
 from model.config import ConfigError, WorldModelConfig, saved_settings
@@ -87,6 +90,7 @@ def export_frozen(model: WorldModel, out_dir: str | Path, provenance: dict[str, 
         "image_shape": list(IMAGE_SHAPE),
         "normalisation": NORMALISATION,
         "provenance": provenance or {},
+        "weights_sha256": hashlib.sha256(weights).hexdigest(),  # bytes changed by a disk or a copy are found on load
     }
     # both written beside their names first, then renamed one after the other: a full disk or a kill while they are
     # written (seconds at paper sizes) leaves an export replaced with --overwrite as it was, whole; only a kill between
@@ -130,6 +134,9 @@ def read_config(export_dir: str | Path) -> dict[str, Any]:
     _check_frames(config, path)
     if not isinstance(config.get("provenance", {}), dict):
         raise ExportError(f"{path}: \"provenance\" is {config['provenance']!r}, not an object; re-export the checkpoint")
+    if (digest := config.get("weights_sha256")) is not None and not re.fullmatch("[0-9a-f]{64}", str(digest)):
+        raise ExportError(f"{path}: weights_sha256 is {json.dumps(digest)[:40]}, not a sha256 in hex; re-export the "
+                          "checkpoint")
     for key, (test, wanted) in PROVENANCE_KINDS.items():  # each may be absent or null: not recorded
         if (value := config.get("provenance", {}).get(key)) is not None and not test(value):
             raise ExportError(f"{path}: provenance.{key} is {json.dumps(value)[:40]}, not {wanted}; re-export the "
@@ -194,9 +201,15 @@ def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> F
     if not weights_path.is_file():
         raise ExportError(f"{weights_path} not found; re-export the checkpoint into {export_dir}")
     try:
-        tensors = load_file(str(weights_path), device=str(device))
+        data = weights_path.read_bytes()
+        tensors = load(data)
     except (SafetensorError, OSError) as err:
         raise ExportError(f"{weights_path} cannot be read as safetensors ({err}); re-export the checkpoint") from None
+    recorded = config.get("weights_sha256")  # None in exports written before it
+    if recorded is not None and recorded != hashlib.sha256(data).hexdigest():
+        source = config.get("provenance", {}).get("checkpoint") or "the one it came from"
+        raise ExportError(f"{weights_path} is damaged: its sha256 differs from the one {CONFIG_FILE} records (bytes "
+                          f"changed by a disk or a copy); re-export the checkpoint ({source})")
     model = FrozenWorldModel(config)
     expected = {name: tuple(t.shape) for name, t in model.state_dict().items()}
     found = {name: tuple(t.shape) for name, t in tensors.items()}

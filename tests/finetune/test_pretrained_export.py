@@ -71,10 +71,12 @@ def test_k1_embedding_takes_the_median_length_of_the_exports_pre_training_clips(
         (lambda d: _edit_config(d, provenance={"train_clip_length": -3}), "train_clip_length is -3, not a positive"),
         (lambda d: _edit_config(d, provenance={"train_clip_length": 0}), "train_clip_length is 0, not a positive"),
         (lambda d: _edit_config(d, provenance={"train_clip_length": 10**400}), "train_clip_length is 1000.*, not a positive"),
+        (lambda d: _change_a_weight(d), "weights.safetensors is damaged: its sha256 differs from the one config.json"),
+        (lambda d: _edit_config(d, weights_sha256="abc"), "weights_sha256 is \"abc\", not a sha256 in hex"),
     ],
     ids=["no-dir", "no-config", "no-weights", "bad-json", "wrong-version", "wrong-shapes", "bad-embedding", "a-pickle",
          "normalisation-text", "shape-number", "feature-dim-text", "a-file", "provenance-list", "negative-length", "zero-length",
-         "huge-length"],
+         "huge-length", "weight-changed", "bad-checksum"],
 )
 def test_bad_exports_fail_clearly(export_copy, damage, message):
     damage(export_copy)
@@ -87,6 +89,14 @@ def _edit_config(directory, **changes):
     config = json.loads((directory / "config.json").read_text())
     config.update(changes)
     (directory / "config.json").write_text(json.dumps(config))
+
+
+def _change_a_weight(directory):
+    """Two float32 ones written over the middle of the weights (a disk or copy error: finite, plausible values)."""
+    weights = directory / "weights.safetensors"
+    data = bytearray(weights.read_bytes())
+    data[len(data) // 2:len(data) // 2 + 8] = bytes.fromhex("0000803f0000803f")
+    weights.write_bytes(bytes(data))
 
 
 def _edit_sizes(directory, **changes):
