@@ -4,7 +4,8 @@ LightningCLI turns --config files and flags into the module (model.*), the data 
 (trainer.*). PretrainCLI adds what a user needs before anything is built, each step a function below:
   resume            `--ckpt_path last`, and a checkpoint of another model or with changed settings refused by name
   trainer settings  the ones the step cannot honour (precision, accumulation, clipping, no GPU) refused by flag
-  one fit at a time a second single-process fit into a checkpoint directory in use refused (`FIT_LOCK`)
+  one fit at a time a second fit (or DDP job) into a checkpoint directory in use refused (`FIT_LOCK`)
+  wrong values      a value of the wrong type named with the --config file or flag that gave it (`wrong_value`)
   engineering       atomic checkpoints, a checkpoint at the last step and on SIGTERM (on every DDP rank after the
                     same step), the step progress bar, the resume notice (model/checkpointing.py, model/sigterm.py,
                     model/interrupt.py, model/progress.py)
@@ -18,6 +19,7 @@ import dataclasses
 import difflib
 import logging
 import pydoc
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -149,6 +151,34 @@ def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
             raise ConfigError(f"config file {path}: {unknown} is no setting of `{command}`"
                               + (f" (did you mean {meant[0]}?)" if meant else "")
                               + f"; `{command} --help` lists them")
+
+
+def wrong_value(message: str, args: list[str]) -> str | None:
+    """A jsonargparse message about a value of the wrong type (`Parser key "trainer.max_steps": Expected a <class
+    'int'>. Got value: abc`, after a page of usage) in one line naming where the value came from: the --config file
+    or flag in `args` that sets the key to that value (the parser stops at the first). None for other messages."""
+    keys = re.findall(r'Parser key "([^"]+)"', message)
+    if not keys:
+        return None
+    key = keys[-1]  # the innermost: `--model.world_model '{deter: abc}'` fails at model.world_model.deter
+    wanted = [{"NoneType": "null"}.get(name, name) for name in dict.fromkeys(re.findall(r"Expected a <class '(\w+)'>", message))]
+    given = (re.findall(r"(?:Got|Given) value: (.*)", message) or [None])[-1]
+    what = f"expects {' or '.join(wanted)}, got {given!r}" if wanted and given is not None else \
+        " ".join(message.split("\n")[-1].split())
+    sources = []  # (where, the value it gives as text), in the order the parser reads them
+    for index, arg in enumerate(args):
+        flag, equals, value = arg.partition("=")
+        value = value if equals else (args[index + 1] if index + 1 < len(args) else "")
+        if flag in ("--config", "-c") and Path(value).is_file():
+            setting = read_config_file(Path(value), "")
+            for part in key.split("."):
+                setting = setting[part] if isinstance(setting, dict) and part in setting else None
+            if setting is not None:
+                sources.append((f"config file {value}: {key}", str(setting)))
+        elif flag.startswith("--") and (key == flag[2:] or key.startswith(flag[2:] + ".")):
+            sources.append((flag if key == flag[2:] else f"{flag}: {key}", value))
+    where = next((where for where, text in sources if given is not None and given in text), f"--{key}")
+    return f"{where} {what}"
 
 
 def checkpoint_to_resume(config, subcommand: str) -> str | None:
@@ -304,10 +334,18 @@ class PretrainCLI(LightningCLI):
     def parse_arguments(self, parser, args: list[str]) -> None:
         """The checks of `refuse_bad_configs` first, against the settings of the subcommand asked for."""
         subcommand = args[0] if args and args[0] in self.subcommands() else None
-        if subcommand is not None:  # the parser says what the subcommands are otherwise
-            names = setting_names(self._subcommand_parsers[subcommand])  # LightningCLI's, one per subcommand
-            refuse_bad_configs(args, names, f"{parser.prog} {subcommand}")
-        super().parse_arguments(parser, args)
+        if subcommand is None:  # the parser says what the subcommands are
+            return super().parse_arguments(parser, args)
+        subparser = self._subcommand_parsers[subcommand]  # LightningCLI's, one per subcommand
+        refuse_bad_configs(args, setting_names(subparser), f"{parser.prog} {subcommand}")
+        parser.exit_on_error = subparser.exit_on_error = False  # their errors come here, raised
+        try:
+            super().parse_arguments(parser, args)
+        except argparse.ArgumentError as err:
+            if said := wrong_value(str(err), args):
+                raise ConfigError(said) from None
+            subparser.exit_on_error = True
+            subparser.error(str(err))  # what it says otherwise, with its usage
 
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("data.k_max", "model.k_max")  # one K_max for sampling and validation

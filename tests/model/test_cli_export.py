@@ -772,6 +772,10 @@ def test_an_export_into_something_that_is_not_a_directory_of_files_is_refused(ti
     ("model:\n  hcu_target: .inf\n", "model.hcu_target must be a finite number, got inf"),
     ("model:\n  lr: 1e999\n", "model.lr must be a finite number, got inf"),
     ("model:\n  world_model:\n    reference_length: .nan\n", "world_model.reference_length must be a finite number"),
+    # a value of the wrong type: the parser named the key after its whole usage text, not the file
+    ("trainer:\n  max_steps: many\n", "trainer.max_steps expects int, got 'many'"),
+    ("data:\n  pin_memory: maybe\n", "data.pin_memory expects bool or null, got 'maybe'"),
+    ("model:\n  world_model:\n    deter: wide\n", "model.world_model.deter expects int, got 'wide'"),
 ])
 def test_a_config_file_that_would_train_other_settings_without_a_word_is_refused(built_shards, tmp_path, capsys, text,
                                                                                   message):
@@ -781,6 +785,24 @@ def test_a_config_file_that_would_train_other_settings_without_a_word_is_refused
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and "usage:" not in err, err[-1500:]
     assert f"config file {overlay}" in err or "must be a finite number" in err
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_a_flag_of_the_wrong_type_is_named_in_one_line_and_other_parser_errors_keep_their_usage(built_shards, tmp_path,
+                                                                                               capsys):
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "lots") == 2
+    err = capsys.readouterr().err
+    assert err.strip().endswith("hauwm pretrain fit: error: --trainer.max_steps expects int, got 'lots'"), err[-500:]
+    assert "usage:" not in err
+    assert fit(built_shards, tmp_path, "--model.world_model", "{deter: wide}") == 2
+    assert "error: --model.world_model: model.world_model.deter expects int, got 'wide'" in capsys.readouterr().err
+    overlay = tmp_path / "overlay.yaml"
+    overlay.write_text("trainer:\n  max_steps: many\n")  # the parser stops at the first bad value it reads
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "lots", "--config", str(overlay)) == 2
+    assert "error: --trainer.max_steps expects int, got 'lots'" in capsys.readouterr().err
+    assert fit(built_shards, tmp_path, "--trainer.max_stepz", "3") == 2
+    err = capsys.readouterr().err
+    assert "usage:" in err and "unrecognized arguments: --trainer.max_stepz 3" in err
     assert not (tmp_path / "checkpoints").exists()
 
 
