@@ -302,9 +302,12 @@ def settle_trainer(trainer, subcommand: str) -> None:
         raise ConfigError(f"--trainer.accumulate_grad_batches {trainer.accumulate_grad_batches}: the step "
                           "optimises by itself (skipped steps, λ's dual step) and accumulates nothing: raise "
                           "--data.batch_size instead")
-    if subcommand == "fit" and trainer.limit_train_batches is not None and trainer.limit_train_batches == 0:
-        raise ConfigError("--trainer.limit_train_batches 0: the fit would train nothing and end at once; leave it unset "
-                          "(a whole epoch), or cut the run with --trainer.max_steps")
+    for flag, value in (("limit_train_batches", trainer.limit_train_batches), ("max_epochs", trainer.max_epochs),
+                        ("max_steps", trainer.max_steps)):
+        if subcommand == "fit" and value is not None and value == 0:  # Lightning ends such a fit at once, exit 0
+            raise ConfigError(f"--trainer.{flag} 0: the fit would train nothing and end at once; cut the run with "
+                              "--trainer.max_steps N >= 1 (-1: no limit), or score a checkpoint with "
+                              "`hauwm pretrain validate`")
     interval = trainer.val_check_interval  # steps (int), a fraction of an epoch (float), or a time
     if isinstance(interval, int | float) and not isinstance(interval, bool) and not interval > 0:  # Lightning divides by it
         raise ConfigError(f"--trainer.val_check_interval {interval}: validate every N >= 1 training steps, or a fraction "

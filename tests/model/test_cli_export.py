@@ -201,6 +201,8 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--trainer.devices", "0"], "a --trainer setting Lightning refuses: `Trainer(devices='0')` value is not"),
         (["--ckpt_path", "/"], "--ckpt_path / is a directory: pass a checkpoint file"),
         (["--trainer.limit_train_batches", "0"], "--trainer.limit_train_batches 0: the fit would train nothing"),
+        (["--trainer.max_epochs", "0"], "--trainer.max_epochs 0: the fit would train nothing"),  # it ended at once, 0
+        (["--trainer.max_steps", "0"], "--trainer.max_steps 0: the fit would train nothing"),
         (["--ckpt_path", "/nonexistent/last.ckpt"], "--ckpt_path /nonexistent/last.ckpt does not exist: pass a"),
         # it trained, but a SIGTERM killed it without last.ckpt, and Ctrl-C's notice said "at step 0"
         (["--trainer.strategy", "ddp_spawn"], "--trainer.strategy ddp_spawn: ranks started by Python's multiprocessing"),
