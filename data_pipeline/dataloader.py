@@ -137,7 +137,7 @@ class ResumableDataLoader(DataLoader):
 
     def state_dict(self) -> dict:
         return {"epoch": self.dataset.epoch, "batches": int(self.batches_done()), "epoch_ended": bool(self.epoch_ended()),
-                "streams": self.dataset.streams}
+                "streams": self.dataset.streams, "content_id": self.dataset.content_id}
 
     def load_state_dict(self, state: dict) -> None:
         epoch, batches = state["epoch"], state["batches"]
@@ -146,6 +146,11 @@ class ResumableDataLoader(DataLoader):
                           f"DataLoader workers), this run {self.dataset.streams}: the rest of epoch {epoch} is not "
                           "what an unbroken run would have read (clips may repeat or be left out in it), later epochs "
                           "are; resume with the same --data.num_workers and devices for an exact resume", stacklevel=2)
+        if state.get("content_id", self.dataset.content_id) != self.dataset.content_id:
+            warnings.warn(f"the checkpoint's {self.dataset.split} loader read other shards than this run's --data.shards "
+                          f"(their clips differ in number or length): the rest of epoch {epoch} skips as many batches "
+                          "of these as it had read of those, and later epochs shuffle these; a resume from the same "
+                          "shards (wherever they now are) is exact", stacklevel=2)
         # saved after an epoch's last batch (all of them, or the last that limit_train_batches lets through), or
         # past the end of this run's shorter epochs (SetEpoch.on_load_checkpoint marks Lightning's epoch ended then):
         # Lightning goes on with the next epoch, from this iterator and without the epoch-start hooks (so without

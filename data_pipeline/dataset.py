@@ -33,6 +33,7 @@ The stages of one worker (the per-sequence cost at L = 16 is in bench/README.md)
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import os
@@ -243,6 +244,9 @@ class SequenceDataset(IterableDataset):
         self.streams = self.world_size * self.workers  # what a resume position means depends on it
         self.clips_in = usable_shards(shards, seq_len, self.world_size, self.workers)  # url -> clips of ≥ seq_len frames
         self.urls = list(self.clips_in)
+        # what the shards hold, wherever they are (a resume from moved shards is exact; from others it is not)
+        self.content_id = hashlib.sha256(json.dumps([sorted(counts.items()) for url, counts in zip(
+            shards.urls, shards.frame_counts) if url in self.clips_in]).encode()).hexdigest()[:16]
         clips = sum(self.clips_in.values())
         self.batches_per_worker = batches_per_worker or clips // (self.streams * batch_size)
         if self.batches_per_worker < 1:

@@ -7,6 +7,7 @@ import logging
 import multiprocessing
 import os
 import re
+import shutil
 import signal
 import tarfile
 import threading
@@ -476,7 +477,6 @@ def test_a_truncated_shard_is_refused_with_its_name(built_shards, tmp_path):
 
 
 def test_a_shard_repacked_by_gnu_tar_reads_the_same(built_shards, tmp_path):
-    import shutil
     import subprocess
 
     if shutil.which("tar") is None:
@@ -505,6 +505,28 @@ def test_a_resume_with_another_number_of_loader_streams_is_warned_about(built_sh
     with pytest.warns(UserWarning, match=r"ran 1 streams \(ranks × DataLoader workers\), this run 2: the rest of "
                                          r"epoch 0 .*--data.num_workers"):
         loader.load_state_dict({**state, "streams": 1})
+
+
+def test_a_resume_onto_other_shards_is_warned_about_and_one_onto_moved_shards_is_not(built_shards, tmp_path):
+    """The position a checkpoint holds means other clips in other shards: such a resume warns (it went on without a
+    word); the same shards in another directory, or a checkpoint from before the field, do not."""
+    def loader(shards):
+        return make_dataloader(SequenceDataset(shard_set(shards, "train"), batch_size=2, seq_len=8, num_workers=2))
+
+    state = loader(built_shards).state_dict()
+    moved = shutil.copytree(built_shards, tmp_path / "moved")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loader(moved).load_state_dict({**state, "batches": 1})
+        loader(moved).load_state_dict({key: value for key, value in state.items() if key != "content_id"})
+    other = tmp_path / "other"
+    shutil.copytree(built_shards, other)
+    manifest = json.loads((other / "manifest.json").read_text())
+    manifest["splits"]["train"]["shards"].pop()  # one shard fewer: a dataset grown or cut since
+    (other / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.warns(UserWarning, match=r"the checkpoint's train loader read other shards than this run's "
+                                         r"--data.shards \(their clips differ in number or length\): the rest of epoch 0"):
+        loader(other).load_state_dict(state)
 
 
 @pytest.mark.parametrize("stop_at", [5, 6, 9])  # mid-epoch (an epoch here is 6 batches), at its end, inside the second
