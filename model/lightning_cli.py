@@ -18,6 +18,7 @@ import contextlib
 import dataclasses
 import difflib
 import logging
+import os
 import pydoc
 import re
 import sys
@@ -27,6 +28,7 @@ from typing import Any
 
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
+from lightning.fabric.plugins.environments import LightningEnvironment
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
@@ -397,6 +399,12 @@ class PretrainCLI(LightningCLI):
         settle_trainer(config.trainer, self.subcommand)
 
     def before_fit(self) -> None:
+        environment = getattr(self.trainer.strategy, "cluster_environment", None)
+        if self.trainer.num_nodes > 1 and type(environment) is LightningEnvironment and "MASTER_ADDR" not in os.environ:
+            # no SLURM, torchrun or other cluster: rank 0 would wait at 127.0.0.1 for nodes that cannot reach it
+            raise ConfigError(f"--trainer.num_nodes {self.trainer.num_nodes}, and no cluster started this process (no "
+                              "SLURM job, no torchrun, no MASTER_ADDR): start it with srun or torchrun on every node, "
+                              "or set MASTER_ADDR (node 0's address), MASTER_PORT and NODE_RANK on each")
         for callback in self.trainer.checkpoint_callbacks:
             if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
                 callback.dirpath = str(checkpoint_dir(self.trainer.default_root_dir))

@@ -414,6 +414,16 @@ def test_a_ddp_job_into_a_checkpoint_directory_in_use_is_refused(built_shards, t
     assert not list(checkpoints.glob("*.ckpt"))
 
 
+def test_several_nodes_without_a_cluster_are_refused_instead_of_waiting(built_shards, tmp_path, capsys, monkeypatch):
+    """Rank 0 waited at 127.0.0.1 for nodes that could not reach it, without a word, until DDP's timeout."""
+    monkeypatch.delenv("MASTER_ADDR", raising=False)
+    assert fit(built_shards, tmp_path / "run", "--trainer.num_nodes", "2", "--trainer.strategy", "ddp",
+               "--trainer.max_steps", "2") == 2
+    assert ("--trainer.num_nodes 2, and no cluster started this process (no SLURM job, no torchrun, no MASTER_ADDR): "
+            "start it with srun or torchrun on every node") in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
 def test_resuming_another_runs_checkpoint_over_a_runs_own_last_ckpt_is_refused(built_shards, tiny_run, tmp_path,
                                                                                  capsys):
     """Its last.ckpt replaced this directory's without a word, and `--ckpt_path last` then went on with the other run."""
