@@ -17,6 +17,7 @@ import argparse
 import contextlib
 import dataclasses
 import difflib
+import functools
 import logging
 import os
 import pydoc
@@ -149,6 +150,10 @@ def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
             raise ConfigError(f"{path}: model.{flat[0]} (like every size) now belongs under model.world_model, "
                               f"e.g. `model: {{world_model: {{{flat[0]}: {model[flat[0]]}}}}}` (model/config.py)")
         if unknown := unknown_setting(config, names):
+            if children := sorted(name for name in names if name.startswith(unknown + ".")):
+                value = functools.reduce(lambda mapping, key: mapping[key], unknown.split("."), config)
+                raise ConfigError(f"config file {path}: {unknown} is a group of settings, not {value!r}: write them "
+                                  f"under it, e.g. `{unknown.split('.')[-1]}: {{{children[0].split('.')[-1]}: ...}}`")
             meant = difflib.get_close_matches(unknown, names, n=1)
             raise ConfigError(f"config file {path}: {unknown} is no setting of `{command}`"
                               + (f" (did you mean {meant[0]}?)" if meant else "")

@@ -788,6 +788,8 @@ def test_an_export_into_something_that_is_not_a_directory_of_files_is_refused(ti
     ("trainer:\n  max_steps: many\n", "trainer.max_steps expects int, got 'many'"),
     ("data:\n  pin_memory: maybe\n", "data.pin_memory expects bool or null, got 'maybe'"),
     ("model:\n  world_model:\n    deter: wide\n", "model.world_model.deter expects int, got 'wide'"),
+    ("model:\n  world_model: 5\n", "model.world_model is a group of settings, not 5: write them under it, e.g. "
+                                    "`world_model: {cnn_width: ...}`"),  # was: "is no setting (did you mean ...?)"
 ])
 def test_a_config_file_that_would_train_other_settings_without_a_word_is_refused(built_shards, tmp_path, capsys, text,
                                                                                   message):
