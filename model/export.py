@@ -19,9 +19,9 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import re
 import math
 import pickle
+import re
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path

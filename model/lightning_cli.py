@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
 from lightning.fabric.plugins.environments import LightningEnvironment
+from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
@@ -168,7 +168,8 @@ def wrong_value(message: str, args: list[str]) -> str | None:
     if not keys:
         return None
     key = keys[-1]  # the innermost: `--model.world_model '{deter: abc}'` fails at model.world_model.deter
-    wanted = [{"NoneType": "null"}.get(name, name) for name in dict.fromkeys(re.findall(r"Expected a <class '(\w+)'>", message))]
+    types = dict.fromkeys(re.findall(r"Expected a <class '(\w+)'>", message))  # in order, each once
+    wanted = [{"NoneType": "null"}.get(name, name) for name in types]
     given = (re.findall(r"(?:Got|Given) value: (.*)", message) or [None])[-1]
     what = f"expects {' or '.join(wanted)}, got {given!r}" if wanted and given is not None else \
         " ".join(message.split("\n")[-1].split())
