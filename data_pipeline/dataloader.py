@@ -148,9 +148,10 @@ class ResumableDataLoader(DataLoader):
                           "are; resume with the same --data.num_workers and devices for an exact resume", stacklevel=2)
         if state.get("content_id", self.dataset.content_id) != self.dataset.content_id:
             warnings.warn(f"the checkpoint's {self.dataset.split} loader read other shards than this run's --data.shards "
-                          f"(their clips differ in number or length): the rest of epoch {epoch} skips as many batches "
-                          "of these as it had read of those, and later epochs shuffle these; a resume from the same "
-                          "shards (wherever they now are) is exact", stacklevel=2)
+                          f"(their sha256s differ): the rest of epoch {epoch} skips the {batches} batches a rank had "
+                          "read of those in this run's order of these, so it is what neither run alone would read; "
+                          "later epochs read these as a new run would. A resume from the same shards (moved or "
+                          "copied elsewhere) is exact", stacklevel=2)
         # saved after an epoch's last batch (all of them, or the last that limit_train_batches lets through), or
         # past the end of this run's shorter epochs (SetEpoch.on_load_checkpoint marks Lightning's epoch ended then):
         # Lightning goes on with the next epoch, from this iterator and without the epoch-start hooks (so without

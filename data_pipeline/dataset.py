@@ -68,11 +68,12 @@ class LoaderError(ValueError):
 @dataclass(frozen=True)
 class ShardSet:
     """The shards of one split: their URLs and, per shard, how many clips have each frame count; their frames'
-    height and width (the build's --size)."""
+    height and width (the build's --size); their sha256s as the manifest lists them (what they hold, wherever they are)."""
     split: str
     urls: list[str]
     frame_counts: list[dict[int, int]]
     frame_size: int = 64
+    checksums: tuple[str, ...] = ()
 
     def eligible(self, seq_len: int) -> list[int]:
         """Per shard, the number of clips with at least `seq_len` frames (the others are skipped)."""
@@ -133,7 +134,8 @@ def shard_set(directory: str | Path, split: str, shard_url: str | None = None) -
                           f"are not the files it lists, e.g. {url}: {size} bytes, listed as {listed} (a partial copy, "
                           f"or another shard in its place); {VERIFY_HINT}")
     counts = [{int(frames): n for frames, n in s["frame_counts"].items()} for s in shards]
-    return ShardSet(split, urls, counts, manifest["settings"]["size"])  # sizes the workers' batch slots
+    return ShardSet(split, urls, counts, manifest["settings"]["size"],  # the size: the workers' batch slots'
+                    tuple(s["sha256"] for s in shards))
 
 
 def shard_samples(sources: Iterator[dict]) -> Iterator[dict]:
@@ -244,9 +246,9 @@ class SequenceDataset(IterableDataset):
         self.streams = self.world_size * self.workers  # what a resume position means depends on it
         self.clips_in = usable_shards(shards, seq_len, self.world_size, self.workers)  # url -> clips of ≥ seq_len frames
         self.urls = list(self.clips_in)
-        # what the shards hold, wherever they are (a resume from moved shards is exact; from others it is not)
-        self.content_id = hashlib.sha256(json.dumps([sorted(counts.items()) for url, counts in zip(
-            shards.urls, shards.frame_counts) if url in self.clips_in]).encode()).hexdigest()[:16]
+        # what the shards read hold, wherever they are: a resume from moved shards is exact, from others it is not
+        self.content_id = hashlib.sha256(" ".join(checksum for url, checksum in zip(shards.urls, shards.checksums)
+                                                  if url in self.clips_in).encode()).hexdigest()[:16]
         clips = sum(self.clips_in.values())
         self.batches_per_worker = batches_per_worker or clips // (self.streams * batch_size)
         if self.batches_per_worker < 1:

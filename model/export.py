@@ -135,7 +135,7 @@ def read_config(export_dir: str | Path) -> dict[str, Any]:
     if not isinstance(config.get("provenance", {}), dict):
         raise ExportError(f"{path}: \"provenance\" is {config['provenance']!r}, not an object; re-export the checkpoint")
     if (digest := config.get("weights_sha256")) is not None and not re.fullmatch("[0-9a-f]{64}", str(digest)):
-        raise ExportError(f"{path}: weights_sha256 is {json.dumps(digest)[:40]}, not a sha256 in hex; re-export the "
+        raise ExportError(f"{path}: weights_sha256 is {str(digest)[:70]!r}, not a sha256 in hex; re-export the "
                           "checkpoint")
     for key, (test, wanted) in PROVENANCE_KINDS.items():  # each may be absent or null: not recorded
         if (value := config.get("provenance", {}).get(key)) is not None and not test(value):
@@ -200,16 +200,17 @@ def load_frozen(export_dir: str | Path, device: torch.device | str = "cpu") -> F
     weights_path = Path(export_dir) / WEIGHTS_FILE
     if not weights_path.is_file():
         raise ExportError(f"{weights_path} not found; re-export the checkpoint into {export_dir}")
-    try:
+    source = config.get("provenance", {}).get("checkpoint") or "the checkpoint"
+    try:  # read whole (the export's size in memory once more, briefly) to check it against its sha256 first
         data = weights_path.read_bytes()
+        recorded = config.get("weights_sha256")  # None in exports written before it
+        if recorded is not None and recorded != hashlib.sha256(data).hexdigest():
+            raise ExportError(f"{weights_path} is not the file {CONFIG_FILE} was written with: its sha256 differs (bytes "
+                              "changed by a disk or a copy, or an export --overwrite killed between writing the two "
+                              f"files); re-export {source}")
         tensors = load(data)
     except (SafetensorError, OSError) as err:
-        raise ExportError(f"{weights_path} cannot be read as safetensors ({err}); re-export the checkpoint") from None
-    recorded = config.get("weights_sha256")  # None in exports written before it
-    if recorded is not None and recorded != hashlib.sha256(data).hexdigest():
-        source = config.get("provenance", {}).get("checkpoint") or "the one it came from"
-        raise ExportError(f"{weights_path} is damaged: its sha256 differs from the one {CONFIG_FILE} records (bytes "
-                          f"changed by a disk or a copy); re-export the checkpoint ({source})")
+        raise ExportError(f"{weights_path} cannot be read as safetensors ({err}); re-export {source}") from None
     model = FrozenWorldModel(config)
     expected = {name: tuple(t.shape) for name, t in model.state_dict().items()}
     found = {name: tuple(t.shape) for name, t in tensors.items()}

@@ -17,7 +17,6 @@ import argparse
 import contextlib
 import dataclasses
 import difflib
-import functools
 import logging
 import os
 import pydoc
@@ -102,14 +101,14 @@ def setting_names(parser) -> set[str]:
     return names
 
 
-def unknown_setting(config: dict, names: set[str], prefix: str = "") -> str | None:
-    """The first key of a config file's mapping (dotted) that is no setting in `names`, or None."""
+def unknown_setting(config: dict, names: set[str], prefix: str = "") -> tuple[str, object] | None:
+    """The first key of a config file's mapping (dotted) that is no setting in `names`, and its value; or None."""
     for key, value in config.items():
         name = f"{prefix}{key}"
         if name in names:
             continue
         if not (isinstance(value, dict) and any(known.startswith(name + ".") for known in names)):
-            return name
+            return name, value
         if unknown := unknown_setting(value, names, name + "."):
             return unknown
     return None
@@ -149,9 +148,9 @@ def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
         if flat:
             raise ConfigError(f"{path}: model.{flat[0]} (like every size) now belongs under model.world_model, "
                               f"e.g. `model: {{world_model: {{{flat[0]}: {model[flat[0]]}}}}}` (model/config.py)")
-        if unknown := unknown_setting(config, names):
+        if found := unknown_setting(config, names):
+            unknown, value = found
             if children := sorted(name for name in names if name.startswith(unknown + ".")):
-                value = functools.reduce(lambda mapping, key: mapping[key], unknown.split("."), config)
                 raise ConfigError(f"config file {path}: {unknown} is a group of settings, not {value!r}: write them "
                                   f"under it, e.g. `{unknown.split('.')[-1]}: {{{children[0].split('.')[-1]}: ...}}`")
             meant = difflib.get_close_matches(unknown, names, n=1)
@@ -160,33 +159,29 @@ def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
                               + f"; `{command} --help` lists them")
 
 
+# jsonargparse's words for one setting of one type given a value of another (a union's words are longer, and said whole)
+WRONG_TYPE = re.compile(r"Parser key \"([^\"]+)\":\s*Expected a <class '(\w+)'>\. Got value: (.+)")
+
+
 def wrong_value(message: str, args: list[str]) -> str | None:
-    """A jsonargparse message about a value of the wrong type (`Parser key "trainer.max_steps": Expected a <class
-    'int'>. Got value: abc`, after a page of usage) in one line naming where the value came from: the --config file
-    or flag in `args` that sets the key to that value (the parser stops at the first). None for other messages."""
-    keys = re.findall(r'Parser key "([^"]+)"', message)
-    if not keys:
+    """A parser message about one setting of the wrong type (`Parser key "trainer.max_steps": Expected a <class
+    'int'>. Got value: abc`, after a page of usage) in one line, with the --config file or flag in `args` that gives
+    that value, where one gives it as written; None for any other message (which is then said as the parser says it)."""
+    if not (match := WRONG_TYPE.fullmatch(message.strip())):
         return None
-    key = keys[-1]  # the innermost: `--model.world_model '{deter: abc}'` fails at model.world_model.deter
-    types = dict.fromkeys(re.findall(r"Expected a <class '(\w+)'>", message))  # in order, each once
-    wanted = [{"NoneType": "null"}.get(name, name) for name in types]
-    given = (re.findall(r"(?:Got|Given) value: (.*)", message) or [None])[-1]
-    what = f"expects {' or '.join(wanted)}, got {given!r}" if wanted and given is not None else \
-        " ".join(message.split("\n")[-1].split())
-    sources = []  # (where, the value it gives as text), in the order the parser reads them
-    for index, arg in enumerate(args):
+    key, wanted, given = match.groups()
+    for index, arg in enumerate(args):  # in the order the parser reads them: it stops at the first wrong value
         flag, equals, value = arg.partition("=")
         value = value if equals else (args[index + 1] if index + 1 < len(args) else "")
         if flag in ("--config", "-c") and Path(value).is_file():
             setting = read_config_file(Path(value), "")
             for part in key.split("."):
-                setting = setting[part] if isinstance(setting, dict) and part in setting else None
-            if setting is not None:
-                sources.append((f"config file {value}: {key}", str(setting)))
-        elif flag.startswith("--") and (key == flag[2:] or key.startswith(flag[2:] + ".")):
-            sources.append((flag if key == flag[2:] else f"{flag}: {key}", value))
-    where = next((where for where, text in sources if given is not None and given in text), f"--{key}")
-    return f"{where} {what}"
+                setting = setting.get(part) if isinstance(setting, dict) else None
+            if setting is not None and str(setting) == given:
+                return f"config file {value}: {key} expects {wanted}, got {given!r}"
+        elif flag == f"--{key}" and value == given:
+            return f"{flag} expects {wanted}, got {given!r}"
+    return f"{key} expects {wanted}, got {given!r}"
 
 
 def checkpoint_to_resume(config, subcommand: str) -> str | None:
@@ -271,7 +266,15 @@ def changed_on_resume(saved: dict, resumed, asked_model, asked_k_max: int) -> li
     return changed
 
 
-def settle_trainer(trainer, subcommand: str) -> None:
+# a fit that would train nothing (Lightning ends it at once, exit 0): the flag, and what to give instead
+TRAINS_NOTHING = {
+    "limit_train_batches": "leave it unset (a whole epoch), or cut the run with --trainer.max_steps",
+    "max_epochs": "give N >= 1 (-1: no limit), or cut the run by steps with --trainer.max_steps",
+    "max_steps": "give N >= 1 (-1: no limit); `hauwm pretrain validate` scores a checkpoint without training",
+}
+
+
+def settle_trainer(trainer, subcommand: str, resuming: bool) -> None:
     """Refuse, by flag, the Trainer settings this step cannot honour; leave out checkpointing where nothing is
     saved; float16 autocast becomes bfloat16 on a CPU. (Every rank of a DDP job runs this; rank 0 alone says so.)"""
     if trainer.accelerator in ("gpu", "cuda") and not torch.cuda.is_available():
@@ -310,12 +313,11 @@ def settle_trainer(trainer, subcommand: str) -> None:
         raise ConfigError(f"--trainer.accumulate_grad_batches {trainer.accumulate_grad_batches}: the step "
                           "optimises by itself (skipped steps, λ's dual step) and accumulates nothing: raise "
                           "--data.batch_size instead")
-    for flag, value in (("limit_train_batches", trainer.limit_train_batches), ("max_epochs", trainer.max_epochs),
-                        ("max_steps", trainer.max_steps)):
-        if subcommand == "fit" and value is not None and value == 0:  # Lightning ends such a fit at once, exit 0
-            raise ConfigError(f"--trainer.{flag} 0: the fit would train nothing and end at once; cut the run with "
-                              "--trainer.max_steps N >= 1 (-1: no limit), or score a checkpoint with "
-                              "`hauwm pretrain validate`")
+    # a resume at max_steps or beyond has been told so (`refuse_other_model`), and ends at once as it always did
+    zero = [flag for flag in TRAINS_NOTHING if getattr(trainer, flag) == 0 and not (flag == "max_steps" and resuming)]
+    if subcommand == "fit" and zero:
+        raise ConfigError(f"--trainer.{zero[0]} 0: the fit would train nothing and end at once; "
+                          f"{TRAINS_NOTHING[zero[0]]}")
     interval = trainer.val_check_interval  # steps (int), a fraction of an epoch (float), or a time
     if isinstance(interval, int | float) and not isinstance(interval, bool) and not interval > 0:  # Lightning divides by it
         raise ConfigError(f"--trainer.val_check_interval {interval}: validate every N >= 1 training steps, or a fraction "
@@ -328,6 +330,16 @@ def settle_trainer(trainer, subcommand: str) -> None:
     if str(trainer.precision) in ("16-mixed", "16") and no_cuda:
         rank_zero_only(print)("hauwm pretrain: float16 autocast needs a GPU; using bf16-mixed on CPU", file=sys.stderr)
         trainer.precision = "bf16-mixed"
+
+
+def refuse_nodes_without_a_cluster(trainer) -> None:
+    """Several nodes and no SLURM, torchrun or MASTER_ADDR: rank 0 waited at 127.0.0.1, without a word, for nodes
+    that could not reach it."""
+    environment = getattr(trainer.strategy, "cluster_environment", None)
+    if trainer.num_nodes > 1 and type(environment) is LightningEnvironment and "MASTER_ADDR" not in os.environ:
+        raise ConfigError(f"--trainer.num_nodes {trainer.num_nodes}, and no cluster started this process (no SLURM "
+                          "job, no torchrun, no MASTER_ADDR): start it with srun or torchrun on every node, or set "
+                          "MASTER_ADDR (node 0's address), MASTER_PORT and NODE_RANK on each")
 
 
 # -- the CLI ------------------------------------------------------------------------------------------
@@ -349,6 +361,7 @@ class PretrainCLI(LightningCLI):
             return super().parse_arguments(parser, args)
         subparser = self._subcommand_parsers[subcommand]  # LightningCLI's, one per subcommand
         refuse_bad_configs(args, setting_names(subparser), f"{parser.prog} {subcommand}")
+        before = parser.exit_on_error, subparser.exit_on_error
         parser.exit_on_error = subparser.exit_on_error = False  # their errors come here, raised
         try:
             super().parse_arguments(parser, args)
@@ -357,6 +370,8 @@ class PretrainCLI(LightningCLI):
                 raise ConfigError(said) from None
             subparser.exit_on_error = True
             subparser.error(str(err))  # what it says otherwise, with its usage
+        finally:  # as Lightning expects them later (it parses a resumed checkpoint's settings, catching SystemExit)
+            parser.exit_on_error, subparser.exit_on_error = before
 
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("data.k_max", "model.k_max")  # one K_max for sampling and validation
@@ -402,15 +417,13 @@ class PretrainCLI(LightningCLI):
             print("hauwm pretrain validate: no --ckpt_path, so this scores a freshly initialised model", file=sys.stderr)
         if self.subcommand == "validate":  # settle_trainer leaves the checkpoint callbacks out, on purpose
             warnings.filterwarnings("ignore", message="Be aware that when using `ckpt_path`, callbacks used to create")
-        settle_trainer(config.trainer, self.subcommand)
+        settle_trainer(config.trainer, self.subcommand, resuming=bool(config.ckpt_path))
+
+    def before_validate(self) -> None:
+        refuse_nodes_without_a_cluster(self.trainer)
 
     def before_fit(self) -> None:
-        environment = getattr(self.trainer.strategy, "cluster_environment", None)
-        if self.trainer.num_nodes > 1 and type(environment) is LightningEnvironment and "MASTER_ADDR" not in os.environ:
-            # no SLURM, torchrun or other cluster: rank 0 would wait at 127.0.0.1 for nodes that cannot reach it
-            raise ConfigError(f"--trainer.num_nodes {self.trainer.num_nodes}, and no cluster started this process (no "
-                              "SLURM job, no torchrun, no MASTER_ADDR): start it with srun or torchrun on every node, "
-                              "or set MASTER_ADDR (node 0's address), MASTER_PORT and NODE_RANK on each")
+        refuse_nodes_without_a_cluster(self.trainer)
         for callback in self.trainer.checkpoint_callbacks:
             if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
                 callback.dirpath = str(checkpoint_dir(self.trainer.default_root_dir))

@@ -62,7 +62,10 @@ def test_k1_embedding_takes_the_median_length_of_the_exports_pre_training_clips(
         (lambda d: _edit_config(d, schema_version=99), "schema_version 99"),
         (lambda d: _edit_sizes(d, deter=25), "does not match"),
         (lambda d: _edit_sizes(d, temporal_mode="log"), "temporal_mode must be one of .* got 'log'"),
-        (lambda d: (d / "weights.safetensors").write_bytes(pickle.dumps({"w": torch.zeros(2)})), "cannot be read as safetensors"),
+        (lambda d: (d / "weights.safetensors").write_bytes(pickle.dumps({"w": torch.zeros(2)})),
+         "weights.safetensors is not the file config.json was written with"),
+        (lambda d: ((d / "weights.safetensors").write_bytes(pickle.dumps({"w": torch.zeros(2)})),  # an export from
+                    _edit_config(d, weights_sha256=None)), "cannot be read as safetensors"),  # before the checksum
         (lambda d: _edit_config(d, normalisation="x / 255"), "image normalisation 'x / 255' differs"),
         (lambda d: _edit_config(d, image_shape=64), "image_shape 64 differs"),
         (lambda d: _edit_config(d, feature_dim="32"), "config.json says feature_dim '32', the world_model settings give"),
@@ -71,10 +74,10 @@ def test_k1_embedding_takes_the_median_length_of_the_exports_pre_training_clips(
         (lambda d: _edit_config(d, provenance={"train_clip_length": -3}), "train_clip_length is -3, not a positive"),
         (lambda d: _edit_config(d, provenance={"train_clip_length": 0}), "train_clip_length is 0, not a positive"),
         (lambda d: _edit_config(d, provenance={"train_clip_length": 10**400}), "train_clip_length is 1000.*, not a positive"),
-        (lambda d: _change_a_weight(d), "weights.safetensors is damaged: its sha256 differs from the one config.json"),
-        (lambda d: _edit_config(d, weights_sha256="abc"), "weights_sha256 is \"abc\", not a sha256 in hex"),
+        (lambda d: _change_a_weight(d), "weights.safetensors is not the file config.json was written with: its sha256 differs"),
+        (lambda d: _edit_config(d, weights_sha256="abc"), "weights_sha256 is 'abc', not a sha256 in hex"),
     ],
-    ids=["no-dir", "no-config", "no-weights", "bad-json", "wrong-version", "wrong-shapes", "bad-embedding", "a-pickle",
+    ids=["no-dir", "no-config", "no-weights", "bad-json", "wrong-version", "wrong-shapes", "bad-embedding", "a-pickle", "a-pickle-unchecked",
          "normalisation-text", "shape-number", "feature-dim-text", "a-file", "provenance-list", "negative-length", "zero-length",
          "huge-length", "weight-changed", "bad-checksum"],
 )

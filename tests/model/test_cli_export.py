@@ -3,6 +3,7 @@ reproduces the trained module without unpickling, bad settings fail with clear m
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -118,6 +119,9 @@ def test_export_errors_are_clear(tiny_export, tmp_path):
     name = sorted(tensors)[0]
     tensors[name].view(-1)[0] = float("nan")
     save_file(tensors, diverged / "weights.safetensors")
+    config = json.loads((diverged / "config.json").read_text())  # its checksum recorded with the NaN: found by value
+    digest = hashlib.sha256((diverged / "weights.safetensors").read_bytes()).hexdigest()
+    (diverged / "config.json").write_text(json.dumps({**config, "weights_sha256": digest}))
     with pytest.raises(ExportError, match=rf"weights.safetensors: {re.escape(name)} holds NaN or inf \(1 tensors do\): "
                                           "the checkpoint it was exported from had diverged"):
         load_frozen(diverged)
@@ -277,6 +281,8 @@ def test_ckpt_path_last_resumes_the_runs_newest_checkpoint_or_starts_afresh(buil
     said = capsys.readouterr().err
     assert f"--ckpt_path last: resuming from {last}" in said  # at max_steps already: ends at once, and says so
     assert f"{last} is at step {RUN_STEPS}, and --trainer.max_steps is {RUN_STEPS}: nothing to train" in said
+    assert fit(built_shards, tmp_path / "run", "--ckpt_path", "last", "--trainer.max_steps", "0") == 0  # the same
+    assert "--trainer.max_steps is 0: nothing to train" in capsys.readouterr().err  # (refused for a fresh fit)
     assert fit(built_shards, tmp_path / "fresh", "--ckpt_path", "last", "--trainer.max_steps", "1") == 0
     assert f"--ckpt_path last: no {tmp_path / 'fresh' / 'checkpoints' / 'last.ckpt'} yet, starting at step 0" in \
         capsys.readouterr().err
@@ -414,14 +420,21 @@ def test_a_ddp_job_into_a_checkpoint_directory_in_use_is_refused(built_shards, t
     assert not list(checkpoints.glob("*.ckpt"))
 
 
-def test_several_nodes_without_a_cluster_are_refused_instead_of_waiting(built_shards, tmp_path, capsys, monkeypatch):
+@pytest.mark.timeout(120)  # the old code waited until DDP's timeout
+def test_several_nodes_without_a_cluster_are_refused_instead_of_waiting(built_shards, tiny_run, tmp_path, capsys,
+                                                                        monkeypatch):
     """Rank 0 waited at 127.0.0.1 for nodes that could not reach it, without a word, until DDP's timeout."""
-    monkeypatch.delenv("MASTER_ADDR", raising=False)
-    assert fit(built_shards, tmp_path / "run", "--trainer.num_nodes", "2", "--trainer.strategy", "ddp",
-               "--trainer.max_steps", "2") == 2
-    assert ("--trainer.num_nodes 2, and no cluster started this process (no SLURM job, no torchrun, no MASTER_ADDR): "
-            "start it with srun or torchrun on every node") in capsys.readouterr().err
+    for name in ("MASTER_ADDR", "SLURM_NTASKS", "SLURM_JOB_NAME", "TORCHELASTIC_RUN_ID"):  # as on a plain shell
+        monkeypatch.delenv(name, raising=False)
+    nodes = ("--trainer.num_nodes", "2", "--trainer.strategy", "ddp")
+    assert fit(built_shards, tmp_path / "run", *nodes, "--trainer.max_steps", "2") == 2
+    refused = ("--trainer.num_nodes 2, and no cluster started this process (no SLURM job, no torchrun, no MASTER_ADDR): "
+               "start it with srun or torchrun on every node")
+    assert refused in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+    assert main(["validate", "--config", str(TINY_CONFIG), "--data.shards", str(built_shards), *nodes, "--ckpt_path",
+                 str(tiny_run / "checkpoints" / "last.ckpt"), *RUN_ARGS]) == 2
+    assert refused in capsys.readouterr().err
 
 
 def test_resuming_another_runs_checkpoint_over_a_runs_own_last_ckpt_is_refused(built_shards, tiny_run, tmp_path,
@@ -786,7 +799,6 @@ def test_an_export_into_something_that_is_not_a_directory_of_files_is_refused(ti
     ("model:\n  world_model:\n    reference_length: .nan\n", "world_model.reference_length must be a finite number"),
     # a value of the wrong type: the parser named the key after its whole usage text, not the file
     ("trainer:\n  max_steps: many\n", "trainer.max_steps expects int, got 'many'"),
-    ("data:\n  pin_memory: maybe\n", "data.pin_memory expects bool or null, got 'maybe'"),
     ("model:\n  world_model:\n    deter: wide\n", "model.world_model.deter expects int, got 'wide'"),
     ("model:\n  world_model: 5\n", "model.world_model is a group of settings, not 5: write them under it, e.g. "
                                     "`world_model: {cnn_width: ...}`"),  # was: "is no setting (did you mean ...?)"
@@ -808,16 +820,32 @@ def test_a_flag_of_the_wrong_type_is_named_in_one_line_and_other_parser_errors_k
     err = capsys.readouterr().err
     assert err.strip().endswith("hauwm pretrain fit: error: --trainer.max_steps expects int, got 'lots'"), err[-500:]
     assert "usage:" not in err
-    assert fit(built_shards, tmp_path, "--model.world_model", "{deter: wide}") == 2
-    assert "error: --model.world_model: model.world_model.deter expects int, got 'wide'" in capsys.readouterr().err
+    assert fit(built_shards, tmp_path, "--data.pin_memory", "maybe") == 2  # a union's words are the parser's, whole
+    err = capsys.readouterr().err
+    assert "usage:" in err and "Does not validate against any of the Union subtypes" in err and "Given value: maybe" in err
     overlay = tmp_path / "overlay.yaml"
     overlay.write_text("trainer:\n  max_steps: many\n")  # the parser stops at the first bad value it reads
     assert fit(built_shards, tmp_path, "--trainer.max_steps", "lots", "--config", str(overlay)) == 2
     assert "error: --trainer.max_steps expects int, got 'lots'" in capsys.readouterr().err
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "") == 2  # an unset shell variable: blamed on no file
+    err = capsys.readouterr().err
+    assert "usage:" in err and 'Parser key "trainer.max_steps"' in err and "config file" not in err
     assert fit(built_shards, tmp_path, "--trainer.max_stepz", "3") == 2
     err = capsys.readouterr().err
     assert "usage:" in err and "unrecognized arguments: --trainer.max_stepz 3" in err
     assert not (tmp_path / "checkpoints").exists()
+
+
+def test_a_checkpoint_whose_settings_the_parser_refuses_is_refused_without_a_traceback(built_shards, tiny_run,
+                                                                                      tmp_path, capsys):
+    """A setting since removed (or of another type) in a checkpoint's hyper_parameters: Lightning parses them when it
+    resumes, catching the parser's exit; a parser left raising its errors made that a traceback."""
+    state = torch.load(tiny_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    state["hyper_parameters"]["a_removed_setting"] = 1
+    torch.save(state, tmp_path / "old.ckpt")
+    assert fit(built_shards, tmp_path / "run", "--ckpt_path", str(tmp_path / "old.ckpt")) == 2
+    err = capsys.readouterr().err
+    assert "Parsing of ckpt_path hyperparameters failed" in err and "Traceback" not in err
 
 
 def test_a_diverged_checkpoint_is_not_exported_and_leaves_the_export_there_whole(tiny_run, tiny_export, tmp_path,
