@@ -23,7 +23,8 @@ Why these terms: the reconstruction is taken from s̃_t alone (not from [ŝ_t; s
 what the frame shows; the reward head and imagination live in s̃, so a stream that could lean on ŝ_t for
 the decoder would let s̃_t collapse onto its prior. The KL trains the action-conditioned prior to predict
 what the posterior reads from ŝ_t, which is what makes action-conditioned imagination possible. The
-decoder starts from the export's decoder when the sizes match (APV fine-tunes its pre-trained decoder);
+decoder is a trainable copy of the export's (APV fine-tunes its pre-trained decoder), so the new stream's
+deter + stoch must equal the export's (refused otherwise);
 the frozen stream gets no loss at all.
 
 Imagination: the frozen stream advances open-loop with its ensemble mean μ̄ = (1/M) Σ_i μ_i (as in

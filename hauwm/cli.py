@@ -1,7 +1,7 @@
 """The `hauwm` command: dispatches to each stage's own CLI, importing only the stage asked for.
 
     hauwm shards   ...   data_pipeline.cli   (SSv2 -> WebDataset shards, inspect, preview, sample data)
-    hauwm pretrain ...   model.cli           (LightningCLI fit, export, analyze)
+    hauwm pretrain ...   model.cli           (LightningCLI fit and validate, export, analyze)
     hauwm finetune ...   finetune.cli        (online RL, `offline` RL and `imitate`, from the frozen export)
     hauwm datasets ...   finetune.datasets.cli (Minari datasets for offline RL: collect, merge, inspect, list)
 
@@ -23,7 +23,7 @@ from hauwm.messages import first_line
 
 STAGES = {
     "shards": ("data_pipeline.cli", "shard SSv2 into WebDataset tars, inspect and preview them"),
-    "pretrain": ("model.cli", "pre-train the ensemble RSSM (fit), export it, analyze it"),
+    "pretrain": ("model.cli", "pre-train the ensemble RSSM (fit, validate), export it, analyze it"),
     "finetune": ("finetune.cli", "train an agent on a control task from the frozen export (online, offline, imitate)"),
     "datasets": ("finetune.datasets.cli", "collect, merge, inspect and list Minari datasets for offline RL"),
 }
