@@ -355,7 +355,8 @@ class PretrainCLI(LightningCLI):
         super().__init__(*args, **kwargs)
 
     def parse_arguments(self, parser, args: list[str]) -> None:
-        """The checks of `refuse_bad_configs` first, against the settings of the subcommand asked for."""
+        """The checks of `refuse_bad_configs` first, against the settings of the subcommand asked for; a value of the
+        wrong type then said in one line (`wrong_value`), any other parser error as the parser says it."""
         subcommand = args[0] if args and args[0] in self.subcommands() else None
         if subcommand is None:  # the parser says what the subcommands are
             return super().parse_arguments(parser, args)
@@ -427,7 +428,7 @@ class PretrainCLI(LightningCLI):
         for callback in self.trainer.checkpoint_callbacks:
             if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
                 callback.dirpath = str(checkpoint_dir(self.trainer.default_root_dir))
-        if self.trainer.global_rank == 0:  # a DDP job's rank 0 holds it for the job, before it starts the other ranks
+        if self.trainer.global_rank == 0:  # a fit's, or a DDP job's global rank 0's for the whole job
             self.lock_checkpoint_directory(last_checkpoint(self.config["fit"]["trainer"]).parent)
         callbacks = self.trainer.callbacks
         for index, callback in enumerate(callbacks):  # Lightning's own default bar; a user's choice stays
