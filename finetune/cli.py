@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from finetune.config import step_unit
+from finetune.termination import interrupted_once, sigterm_as_interrupt, stopped_by
 
 # subcommand -> (paradigm, its data flag, the config setting that flag fills, help)
 SUBCOMMANDS = {
@@ -37,6 +37,8 @@ CONFIG_DIRS = {"online": "configs/finetune", "offline": "configs/offline", "imit
 
 def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
     """The arguments of `hauwm finetune` (online RL) or of its `offline` / `imitate` subcommand."""
+    from finetune.config import step_unit  # here, as every import of torch: `hauwm finetune` takes SIGTERM first
+
     prog = "hauwm finetune" + (f" {subcommand}" if subcommand else "")
     paradigm = SUBCOMMANDS[subcommand][0] if subcommand else "online"
     unit, _ = step_unit(paradigm)
@@ -84,7 +86,7 @@ def evaluate_run(argv: list[str]) -> int:
     """`hauwm finetune evaluate`: one line with the run's agent's returns over --episodes fresh episodes."""
     from finetune.agent import DivergedError
     from finetune.pretrained import PretrainedError
-    from finetune.config import FinetuneError
+    from finetune.config import FinetuneError, step_unit
     from finetune.run_dir import BEST, CHECKPOINT, load_trained, run_config
     from finetune.train import HELD_OUT_SEED, evaluate, resolve_device, task_env
 
@@ -113,17 +115,28 @@ def evaluate_run(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from finetune.agent import DivergedError
-    from finetune.config import FinetuneConfig, FinetuneError, load_config, others_settings, parse_override
-    from finetune.pretrained import PretrainedError
-    from finetune.replay import ReplayError
-    from finetune.run_dir import CHECKPOINT
-    from finetune.termination import Terminated, interrupted_once
-    from model.config import ConfigError
-
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "evaluate":
         return evaluate_run(argv[1:])
+    with interrupted_once(), sigterm_as_interrupt() as terminated:  # the run's own SIGTERM handling comes later
+        try:
+            return train_command(argv, terminated)
+        except KeyboardInterrupt:  # while it imported what it runs (torch: seconds): before anything began
+            stopped, status = stopped_by(terminated)
+            print(f"hauwm finetune: {stopped}, before the run started", file=sys.stderr)
+            return status
+
+
+def train_command(argv: list[str], terminated: list[int]) -> int:
+    """`hauwm finetune [offline|imitate] ...`: read the settings, run (or resume) the run, say how it ended."""
+    from finetune.agent import DivergedError
+    from finetune.config import FinetuneConfig, FinetuneError, load_config, others_settings, parse_override, step_unit
+    from finetune.pretrained import PretrainedError
+    from finetune.replay import ReplayError
+    from finetune.run_dir import CHECKPOINT
+    from finetune.termination import Terminated
+    from model.config import ConfigError
+
     subcommand = argv[0] if argv and argv[0] in SUBCOMMANDS else None
     args = parser(subcommand).parse_args(argv[1:] if subcommand else argv)
     paradigm = SUBCOMMANDS[subcommand][0] if subcommand else "online"
@@ -157,13 +170,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{parser(subcommand).prog}: note: the scratch agent does not use --pretrained {pretrained}",
                   file=sys.stderr)
             pretrained = None
-        with interrupted_once():  # a second Ctrl-C while the run stops must not cut its envs' closing short
-            result = _runner(paradigm)(cfg, pretrained, progress=not args.no_progress)
+        result = _runner(paradigm)(cfg, pretrained, progress=not args.no_progress)
     except (ConfigError, DivergedError, PretrainedError, FinetuneError, ReplayError) as error:
         print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # said below, once the run's frames (and its progress bar) are gone
-        stopped, status = "interrupted", 130
+    except KeyboardInterrupt:  # Ctrl-C, or SIGTERM before the run's own handling; said below, once the run's frames
+        stopped, status = stopped_by(terminated)  # (and its progress bar) are gone
     except Terminated as where:  # SIGTERM: the run wrote its checkpoint of this moment (finetune/termination.py)
         stopped, status = f"terminated (SIGTERM) at {where}", 143
     if stopped and cfg is None:  # while the settings were read: nothing had started

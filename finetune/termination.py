@@ -101,12 +101,45 @@ def interrupted_once() -> Iterator[None]:
             signal.signal(signum, handler)
 
 
+class _Terminable:
+    """How many `terminable()` blocks are running: SIGTERM is theirs while one is."""
+    blocks = 0
+
+
 @contextlib.contextmanager
 def terminable() -> Iterator[StopRequest]:
     """SIGTERM sets the StopRequest's flag instead of killing the process (`handling_sigterm`)."""
     request = StopRequest()
-    with handling_sigterm(request.note):
-        yield request
+    _Terminable.blocks += 1
+    try:
+        with handling_sigterm(request.note):
+            yield request
+    finally:
+        _Terminable.blocks -= 1
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[list[int]]:
+    """SIGTERM (SLURM's scancel or time limit) does what Ctrl-C does — a KeyboardInterrupt, every SIGINT and SIGTERM
+    after it ignored while the command stops (`stop_listening`) — except inside a `terminable()` block, whose own
+    handler takes it (and calls this one after it, which then does nothing). The list yielded gets the signal, so that
+    the exit status can say so (`stopped_by`)."""
+    terminated: list[int] = []
+
+    def interrupt(signum: int, frame: FrameType | None) -> None:
+        if _Terminable.blocks:
+            return
+        terminated.append(signum)
+        stop_listening()
+        raise KeyboardInterrupt
+
+    with handling_sigterm(interrupt):
+        yield terminated
+
+
+def stopped_by(terminated: list[int]) -> tuple[str, int]:
+    """What stopped a command that raised KeyboardInterrupt, and its exit status: SIGTERM (143) or Ctrl-C (130)."""
+    return ("terminated (SIGTERM)", 143) if terminated else ("interrupted", 130)
 
 
 @contextlib.contextmanager

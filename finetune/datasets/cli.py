@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from finetune.termination import interrupted_once, sigterm_as_interrupt, stopped_by
+
 ENV_SETTINGS = ("fast_render", "time_limit", "action_repeat")  # what --set may change (make_env's arguments)
 
 
@@ -249,8 +251,6 @@ def list_(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from finetune.termination import interrupted_once
-
     args = parser().parse_args(sys.argv[1:] if argv is None else argv)
     with interrupted_once(), sigterm_as_interrupt() as terminated:
         try:
@@ -259,29 +259,6 @@ def main(argv: list[str] | None = None) -> int:
             stopped, status = stopped_by(terminated)
             print(f"hauwm datasets: {stopped}; nothing was written", file=sys.stderr)
             return status
-
-
-@contextlib.contextmanager
-def sigterm_as_interrupt() -> Iterator[list[int]]:
-    """SIGTERM (SLURM's scancel or time limit) does what Ctrl-C does: `collect` keeps the episodes finished as a
-    whole dataset, `merge` deletes its part; the list yielded gets the signal, so the exit status can say so. Every
-    SIGINT and SIGTERM after it is ignored while the command stops (`stop_listening`)."""
-    from finetune.termination import handling_sigterm, stop_listening
-
-    terminated: list[int] = []
-
-    def interrupt(signum: int, frame) -> None:
-        terminated.append(signum)
-        stop_listening()
-        raise KeyboardInterrupt
-
-    with handling_sigterm(interrupt):
-        yield terminated
-
-
-def stopped_by(terminated: list[int]) -> tuple[str, int]:
-    """What stopped a command that raised KeyboardInterrupt, and its exit status: SIGTERM (143) or Ctrl-C (130)."""
-    return ("terminated (SIGTERM)", 143) if terminated else ("interrupted", 130)
 
 
 def run_command(args: argparse.Namespace, terminated: list[int]) -> int:

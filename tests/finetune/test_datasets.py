@@ -26,12 +26,13 @@ from minari.data_collector import EpisodeBuffer
 
 from finetune.datasets import DatasetError, list_datasets, load_episodes, merge_datasets, write_dataset
 from finetune.datasets.minari_io import KeptOnInterrupt, hauwm_metadata, open_dataset
-from finetune.datasets.cli import main, sigterm_as_interrupt
+from finetune.datasets.cli import main
 from finetune.datasets.sources import RandomPolicy, load_agent_policy
 from finetune.envs import make_env
 from finetune.replay import KEYS, Replay
 from finetune.rollout import play_episode
 from finetune.run_dir import BEST, CHECKPOINT, save_checkpoint
+from finetune.termination import sigterm_as_interrupt
 from finetune.train import build_agent
 
 TASK = "metaworld_drawer_close"

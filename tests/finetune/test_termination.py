@@ -90,6 +90,23 @@ def test_the_handler_found_before_is_called_too_and_comes_back():
         signal.signal(signal.SIGTERM, before)
 
 
+@pytest.mark.parametrize("where", ["train_command", "load_config"])
+def test_sigterm_while_the_command_starts_is_said_in_one_line(tmp_path, capsys, monkeypatch, where):
+    """SIGTERM while `hauwm finetune` imported torch or read its settings, before the run's own handling: it died by
+    the signal (status -15) without a line. Nothing was written then, and nothing is now."""
+    import finetune.cli
+    import finetune.config
+
+    module = finetune.cli if where == "train_command" else finetune.config
+    monkeypatch.setattr(module, where, sigterm_once(getattr(module, where), lambda call, *args: True))
+    before = signal.getsignal(signal.SIGTERM)
+    args = ["--config", "configs/finetune/demo.yaml", "--set", "agent=scratch", "--steps", "10"]
+    assert main(args + tiny_run_settings(tmp_path / "run")) == 143
+    assert capsys.readouterr().err.strip() == "hauwm finetune: terminated (SIGTERM), before the run started"
+    assert not (tmp_path / "run").exists()
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
 def stopped(pid: int) -> bool:
     """Whether process `pid` is stopped by SIGSTOP (the state field of /proc/<pid>/stat)."""
     with open(f"/proc/{pid}/stat") as stat:
