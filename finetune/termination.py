@@ -7,7 +7,8 @@ loop reads it after each iteration (an env step and the updates due, or an updat
 and raises `Terminated`, which `hauwm finetune` reports in one line with exit status 143. The same command goes
 on from there (a checkpoint taken within an episode drops that episode's steps, as any other does). Env workers
 that the job's SIGTERM ended before the learner saw its own (`EnvWorkerError.by_sigterm`) stop the run the same
-way, with the checkpoint of the env steps completed (finetune/train.py `run`).
+way, with the checkpoint of the env steps completed (finetune/train.py `run`). Outside a run (while `hauwm finetune`
+starts, and in `hauwm datasets`), `sigterm_as_interrupt()` makes SIGTERM do what Ctrl-C does, said as SIGTERM (143).
 """
 
 from __future__ import annotations
