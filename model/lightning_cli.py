@@ -23,6 +23,7 @@ import pydoc
 import re
 import sys
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -114,6 +115,13 @@ def unknown_setting(config: dict, names: set[str], prefix: str = "") -> tuple[st
     return None
 
 
+def given_flags(args: list[str]) -> Iterator[tuple[str, str]]:
+    """(flag, its value) for each argument, in order: `--flag=value`, or `--flag value` (the next argument)."""
+    for index, arg in enumerate(args):
+        flag, equals, value = arg.partition("=")
+        yield flag, value if equals else (args[index + 1] if index + 1 < len(args) else "")
+
+
 def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
     """What the parser would take silently, or report without naming the --config file (it says "<unicode
     string>", whichever file it was, or no file at all): a file that is not YAML (named with its line), a key set
@@ -121,13 +129,12 @@ def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
     parser ignored it: it is data.k_max's), the sizes moved under model.world_model (an old-style flag or key named
     with its new place), and a key that is no setting in `names` (a misspelling, named with the setting meant)."""
     sizes = {field.name for field in dataclasses.fields(WorldModelConfig)}
-    for index, arg in enumerate(args):
-        flag, _, value = arg.partition("=")
+    for flag, value in given_flags(args):
         if flag.startswith("--model.") and flag.removeprefix("--model.") in sizes:
             raise ConfigError(f"{flag} is now --model.world_model.{flag.removeprefix('--model.')} (model/config.py)")
         if flag not in ("--config", "-c"):
             continue
-        path = Path(value or (args[index + 1] if index + 1 < len(args) else ""))
+        path = Path(value)
         if not path.is_file():
             continue  # the parser names it
         config = read_config_file(path, "model:, data:, trainer:; give it some, or drop --config")
@@ -170,9 +177,7 @@ def wrong_value(message: str, args: list[str]) -> str | None:
     if not (match := WRONG_TYPE.fullmatch(message.strip())):
         return None
     key, wanted, given = match.groups()
-    for index, arg in enumerate(args):  # in the order the parser reads them: it stops at the first wrong value
-        flag, equals, value = arg.partition("=")
-        value = value if equals else (args[index + 1] if index + 1 < len(args) else "")
+    for flag, value in given_flags(args):  # in the order the parser reads them: it stops at the first wrong value
         if flag in ("--config", "-c") and Path(value).is_file():
             setting = read_config_file(Path(value), "")
             for part in key.split("."):
