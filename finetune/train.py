@@ -100,6 +100,7 @@ def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, f
                             f"{flag.lstrip('-')} in the config)")
     from finetune.datasets import DatasetError, load_episodes
     from finetune.datasets.minari_io import hauwm_metadata, open_dataset
+    from finetune.datasets.summary import TERMINALS_IGNORED, ends_terminal
 
     try:
         dataset = open_dataset(dataset_id)
@@ -117,9 +118,13 @@ def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, f
                                 f"{cfg.replay_capacity}: the run would train on its newest {cfg.replay_capacity} only; "
                                 f"--set replay_capacity={dataset.total_steps} (memory: about "
                                 f"{dataset.total_steps * 12.3e-6:.1f} GB of frames)")
-        return load_episodes(dataset_id, task=cfg.task, action_dim=action_dim, progress=False)
+        episodes = load_episodes(dataset_id, task=cfg.task, action_dim=action_dim, progress=False)
     except DatasetError as error:
         raise FinetuneError(f"{flag} {dataset_id}: {error}") from None
+    if terminals := sum(map(ends_terminal, episodes)):
+        print(f"note: {terminals} of the {len(episodes)} episodes of {flag} {dataset_id} end in a terminal state: "
+              f"{TERMINALS_IGNORED}", file=sys.stderr)
+    return episodes
 
 
 def dataset_replay(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, flag: str,

@@ -21,12 +21,14 @@ class Summary:
         self.returns: list[float] = []
         self.lengths: list[int] = []  # agent steps per episode
         self.successes: list[bool] = []  # success at any step of the episode, for episodes with a success flag
+        self.terminals = 0  # episodes that end in a terminal state (not a time limit)
 
     def add(self, episode: dict[str, np.ndarray]) -> None:
         self.returns.append(float(episode["reward"].sum(dtype=np.float64)))
         self.lengths.append(len(episode["reward"]) - 1)
         if "success" in episode:
             self.successes.append(bool(episode["success"].any()))
+        self.terminals += ends_terminal(episode)
 
     def stats(self) -> dict[str, float]:
         returns = np.asarray(self.returns)
@@ -56,4 +58,17 @@ class Summary:
                          f"expert {expert_return:g}{caveat})")
         if "success_rate" in s:
             lines.append(f"success rate    {s['success_rate']:.0%} ({sum(self.successes)} of {s['episodes']} episodes)")
+        if self.terminals:
+            lines.append(f"terminal        {self.terminals} of {s['episodes']} episodes end in a terminal state "
+                         f"({TERMINALS_IGNORED})")
         return lines
+
+
+# what fine-tuning does with a terminal state (docs/finetuning.md, "No continuation head")
+TERMINALS_IGNORED = ("HAUWM's learners have no continuation head, as none of the paper's tasks has terminal states: "
+                     "they treat the end like a time limit, and imagined returns run on past it")
+
+
+def ends_terminal(episode: dict[str, np.ndarray]) -> bool:
+    """Whether an episode (replay layout) ends in a terminal state; False where it records none (`terminal`)."""
+    return "terminal" in episode and bool(episode["terminal"][-1])

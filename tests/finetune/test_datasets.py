@@ -786,3 +786,25 @@ def test_a_datasets_path_that_is_a_file_is_named_as_the_variable(tmp_path, monke
     assert main(args) == 2
     assert (f"hauwm datasets: error: MINARI_DATASETS_PATH={tmp_path / 'afile'}: the datasets' directory cannot be made "
             "there (File exists): set MINARI_DATASETS_PATH to a directory") in capsys.readouterr().err
+
+
+def test_episodes_that_end_in_a_terminal_state_are_counted_and_a_run_says_it_treats_them_as_time_limits(
+        random_episodes, tiny_config, capsys):
+    """HAUWM's learners have no continuation head: a dataset with terminal states (someone else's) was trained on as
+    if its episodes had run into a time limit, and neither `inspect` nor the run said so."""
+    from finetune.train import load_dataset
+
+    ended = [dict(episode, terminal=np.eye(len(episode["reward"]), dtype=np.float32)[-1]) if i == 1 else episode
+             for i, episode in enumerate(random_episodes)]
+    write_dataset("test/terminal-v0", iter(ended), {"task": TASK})
+    assert main(["inspect", "test/terminal-v0", "--no-progress"]) == 0
+    assert "terminal        1 of 3 episodes end in a terminal state (HAUWM's learners have no continuation head" \
+        in capsys.readouterr().out
+    episodes = load_dataset("test/terminal-v0", tiny_config(task=TASK), 4, "--dataset")
+    assert [episode["terminal"][-1] for episode in episodes] == [0, 1, 0]
+    assert "note: 1 of the 3 episodes of --dataset test/terminal-v0 end in a terminal state: HAUWM's learners have " \
+           "no continuation head" in capsys.readouterr().err
+    write_dataset("test/time-limits-v0", iter(random_episodes), {"task": TASK})  # the paper's tasks: no word
+    assert main(["inspect", "test/time-limits-v0", "--no-progress"]) == 0
+    load_dataset("test/time-limits-v0", tiny_config(task=TASK), 4, "--dataset")
+    assert "terminal" not in "".join(capsys.readouterr())
