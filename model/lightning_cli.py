@@ -4,7 +4,8 @@ LightningCLI turns --config files and flags into the module (model.*), the data 
 (trainer.*). PretrainCLI adds what a user needs before anything is built, each step a function below:
   resume            `--ckpt_path last`, and a checkpoint of another model or with changed settings refused by name
   trainer settings  the ones the step cannot honour (precision, accumulation, clipping, no GPU) refused by flag
-  one fit at a time a second fit (or DDP job) into a checkpoint directory in use refused (`FIT_LOCK`)
+  one fit at a time a second fit (or DDP job) into a checkpoint directory in use refused (`FIT_LOCK`), by every
+                    rank of a job that srun or torchrun started (`RankZeroRefusal`)
   wrong values      a value of the wrong type named with the --config file or flag that gave it (`wrong_value`)
   engineering       atomic checkpoints, a checkpoint at the last step and on SIGTERM (on every DDP rank after the
                     same step), the step progress bar, the resume notice (model/checkpointing.py, model/sigterm.py,
@@ -29,7 +30,7 @@ from typing import Any
 
 import torch
 from lightning.fabric.plugins.environments import LightningEnvironment
-from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar, TQDMProgressBar
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint, RichProgressBar, TQDMProgressBar
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
@@ -353,6 +354,26 @@ def refuse_nodes_without_a_cluster(trainer) -> None:
 FIT_LOCK = ".fit.lock"  # in a fit's checkpoint directory while it runs: its pid (hauwm/pid_lock.py)
 
 
+def starts_every_rank(trainer) -> bool:
+    """Whether this process is the job's only one or starts its other ranks itself (Lightning's launcher on one
+    machine, `--trainer.devices N`), rather than a launcher (srun, torchrun) or other nodes starting them."""
+    environment = getattr(trainer.strategy, "cluster_environment", None)
+    return environment is None or (trainer.num_nodes == 1 and not environment.creates_processes_externally)
+
+
+class RankZeroRefusal(Callback):
+    """Rank 0's refusal of a fit, said by every rank of a job whose ranks it did not start: they would otherwise
+    wait for the refused rank 0 in DDP's set-up until its timeout (30 minutes). `setup` runs on every rank once the
+    process group is up, before anything is trained or saved."""
+
+    def __init__(self, refusal: str | None) -> None:
+        self.refusal = refusal  # rank 0's; None on the other ranks and where rank 0 took the lock
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        if (refusal := trainer.strategy.broadcast(self.refusal, src=0)) is not None:
+            raise ConfigError(refusal)
+
+
 class PretrainCLI(LightningCLI):
     def __init__(self, *args, notice: ResumeNotice, held: contextlib.ExitStack, **kwargs):
         self.notice = notice  # LightningCLI parses, builds and runs inside __init__
@@ -433,9 +454,17 @@ class PretrainCLI(LightningCLI):
         for callback in self.trainer.checkpoint_callbacks:
             if isinstance(callback, ModelCheckpoint) and callback.dirpath is None:
                 callback.dirpath = str(checkpoint_dir(self.trainer.default_root_dir))
+        refusal = None
         if self.trainer.global_rank == 0:  # a fit's, or a DDP job's global rank 0's for the whole job
-            self.lock_checkpoint_directory(last_checkpoint(self.config["fit"]["trainer"]).parent)
+            try:
+                self.lock_checkpoint_directory(last_checkpoint(self.config["fit"]["trainer"]).parent)
+            except ConfigError as refused:
+                if starts_every_rank(self.trainer):  # before the other ranks start
+                    raise
+                refusal = str(refused)
+                self.trainer.loggers = []  # no lightning_logs/version_N of its own before the ranks learn it
         callbacks = self.trainer.callbacks
+        callbacks.insert(0, RankZeroRefusal(refusal))  # first: before SaveConfigCallback writes config.yaml
         for index, callback in enumerate(callbacks):  # Lightning's own default bar; a user's choice stays
             if type(callback) in (RichProgressBar, TQDMProgressBar):
                 callbacks[index] = StepProgressBar()

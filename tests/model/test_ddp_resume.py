@@ -3,8 +3,10 @@ exact resume from a checkpoint."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +15,7 @@ import lightning as L
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from hauwm.pid_lock import pid_lock
 from model.config import WorldModelConfig
 from model.module import PretrainModule
 
@@ -23,6 +26,13 @@ def ddp_fit(shards: Path, root: Path, callbacks: list[str], args: tuple[str, ...
             timeout: float = 300) -> subprocess.CompletedProcess:
     """`hauwm pretrain fit` of tiny.yaml for 5 steps with 2 gloo ranks on the CPU, with these callbacks (YAML items)
     and `args` after the others."""
+    command, env = ddp_fit_command(shards, root, callbacks, args)
+    return subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def ddp_fit_command(shards: Path, root: Path, callbacks: list[str],
+                    args: tuple[str, ...] = ()) -> tuple[list[str], dict[str, str]]:
+    """The command of `ddp_fit` and its environment."""
     extra = root / "callbacks.yaml"
     extra.parent.mkdir(parents=True, exist_ok=True)
     extra.write_text("trainer:\n  callbacks:\n    - class_path: data_pipeline.SetEpoch\n" + "".join(callbacks))
@@ -33,7 +43,7 @@ def ddp_fit(shards: Path, root: Path, callbacks: list[str], args: tuple[str, ...
                "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", str(root / "run"), *args]
     python_path = [str(Path(__file__).parent), str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(python_path), "OMP_NUM_THREADS": "1", "PL_DISABLE_FORK": "1"}
-    return subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+    return command, env
 
 
 # a callbacks item that writes last.ckpt (ddp_fit's callbacks replace tiny.yaml's list)
@@ -86,6 +96,32 @@ def test_a_rank_that_fails_stops_the_job_with_one_line_from_each_rank(built_shar
     assert "hauwm pretrain fit: error: shard train-000001.tar of rank 1 is damaged (a test's)" in done.stderr
     assert "hauwm pretrain fit: error: rank 0 lost the other ranks of the job (" in done.stderr
     assert "Traceback" not in done.stderr, done.stderr[-3000:]
+
+
+def test_a_job_whose_ranks_a_launcher_started_is_refused_by_every_rank_when_its_directory_is_in_use(built_shards,
+                                                                                                 tmp_path):
+    """srun, or torchrun over several nodes, starts every rank itself: the refused rank 0 exited before DDP's set-up,
+    and the other ranks waited there for it until DDP's 30-minute timeout. Two ranks started as torchrun starts them,
+    with no agent to end the second when the first fails (as under srun)."""
+    checkpoints = tmp_path / "run" / "checkpoints"
+    checkpoints.mkdir(parents=True)
+    command, env = ddp_fit_command(built_shards, tmp_path, [])
+    with socket.socket() as probe:  # a free port for the job's rendezvous
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    launched = {"TORCHELASTIC_RUN_ID": "test", "WORLD_SIZE": "2", "LOCAL_WORLD_SIZE": "2", "GROUP_RANK": "0",
+                "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)}
+    with pid_lock(checkpoints / ".fit.lock"), contextlib.ExitStack() as ranks:
+        processes = [ranks.enter_context(subprocess.Popen(
+            command, cwd=REPO, env={**env, **launched, "RANK": str(rank), "LOCAL_RANK": str(rank)},
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)) for rank in (0, 1)]
+        ranks.callback(lambda: [process.kill() for process in processes if process.poll() is None])
+        outputs = [process.communicate(timeout=240)[1] for process in processes]
+    for process, stderr in zip(processes, outputs):
+        assert process.returncode == 2, stderr[-3000:]
+        assert f"{checkpoints} is in use by another fit (pid {os.getpid()}): wait for it to end" in stderr, stderr[-3000:]
+        assert "Traceback" not in stderr
+    assert [path.name for path in (tmp_path / "run").rglob("*")] == ["checkpoints", ".fit.lock"]  # nothing of its own
 
 
 def test_sigterm_to_every_rank_at_different_points_stops_them_after_the_same_step(built_shards, tmp_path):
