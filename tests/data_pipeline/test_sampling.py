@@ -57,6 +57,16 @@ def test_starts_cover_the_whole_clip():
     assert 0 in starts and 39 in ends
 
 
+def test_the_start_is_uniform_over_the_starts_that_leave_room_for_the_span():
+    """Reaching frame 0 and the last frame at all (above) would pass a sampler that began most sequences at 0."""
+    rng = np.random.default_rng(5)
+    fixed_span = np.bincount([sample_indices(40, 4, 1, rng)[0] for _ in range(3700)], minlength=37)  # span 3: 37 starts
+    assert len(fixed_span) == 37 and fixed_span.min() > 60 and fixed_span.max() < 145  # 100 each, sd 10
+    drawn = [sample_indices(40, 4, 3, rng) for _ in range(4000)]
+    room = np.array([(indices[0] + 0.5) / (40 - (indices[-1] - indices[0])) for indices in drawn])  # U(0, 1)
+    assert abs(room.mean() - 0.5) < 0.02 and abs((room < 0.25).mean() - 0.25) < 0.025
+
+
 def test_gap_shares_are_those_the_sampler_draws_and_the_note_comes_when_long_gaps_fall_short():
     """The fit and `analyze` say when the clips are too short for K_max: the gaps then drawn are far from U{1..K_max}
     (before, a K_max of 20 on 45-frame clips trained on gaps of mostly 1-3 without a word)."""

@@ -113,11 +113,13 @@ def test_a_missing_caption_is_named_as_missing_not_as_an_unknown_class(annotatio
         load_split(annotations, "train")
 
 
-@pytest.mark.parametrize("index", ["two", [2], True, -1, "-1", "²", "٣"])  # -1 marks test clips; "²".isdigit()
+@pytest.mark.parametrize("index", ["two", [2], True, -1, "-1", "²", "٣"],  # -1 marks test clips; "²".isdigit()
+                         ids=["word", "list", "bool", "negative-int", "negative-text", "superscript", "arabic-digit"])
 def test_a_class_index_that_is_not_a_whole_number_is_refused(annotations, index):
     labels = json.loads((annotations / "something-something-v2-labels.json").read_text())
     write(annotations, "labels", labels | {"Pushing something from left to right": index})
-    with pytest.raises(AnnotationError, match=r"labels.json: class 'Pushing something from left to right' has index"):
+    with pytest.raises(AnnotationError, match=r"labels.json: class 'Pushing something from left to right' has index "
+                                              r".*; an index must be a whole number ≥ 0"):
         load_labels(annotations)
 
 

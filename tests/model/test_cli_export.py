@@ -190,12 +190,13 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
     [
         (["--model.world_model.ensemble", "1"], "HCU needs an ensemble of at least 2 heads"),
         (["--model.world_model.temporal_dim", "7"], "world_model.temporal_dim must be even"),
-        (["--data.k_max", "0"], "k_max"),
+        (["--data.k_max", "0"], "k_max (the largest frame gap) must be ≥ 1, got 0"),
         (["--data.seq_len", "1"], "--data.seq_len must be at least 2"),
         (["--model.lr", "-1"], "model.lr must be positive"),
         (["--trainer.max_steps", "1", "--data.shards", "/nonexistent/shards"], "/nonexistent/shards does not exist"),
         (["--trainer.precision", "bf16-true"], "--trainer.precision bf16-true: a fit runs in 32-true, 16-mixed, bf16-mixed"),
-        (["--trainer.precision", "null", "--data.k_max", "0"], "k_max"),  # no precision is Lightning's 32-true
+        # no precision is Lightning's 32-true
+        (["--trainer.precision", "null", "--data.k_max", "0"], "k_max (the largest frame gap) must be ≥ 1, got 0"),
         (["--trainer.accumulate_grad_batches", "2"], "accumulate_grad_batches 2: the step optimises by itself"),
         (["--trainer.gradient_clip_val", "1"], "the step clips its own gradients: set --model.grad_clip"),
         # Lightning divides by these after the first step (ZeroDivisionError), or refuses them in a traceback

@@ -46,6 +46,13 @@ def ddp_fit_command(shards: Path, root: Path, callbacks: list[str],
     return command, env
 
 
+def free_port() -> int:
+    """A TCP port free on this machine now, for a job's rendezvous."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
 # a callbacks item that writes last.ckpt (ddp_fit's callbacks replace tiny.yaml's list)
 SAVE_LAST = "    - class_path: lightning.pytorch.callbacks.ModelCheckpoint\n      init_args:\n        save_last: true\n"
 
@@ -98,6 +105,25 @@ def test_a_rank_that_fails_stops_the_job_with_one_line_from_each_rank(built_shar
     assert "Traceback" not in done.stderr, done.stderr[-3000:]
 
 
+def _mean_of_two_ranks(rank: int, port: int, out: Path) -> None:
+    """Rank `rank` of a 2-process gloo group: write mean_over_ranks of its value, rank + 1."""
+    import torch.distributed as dist
+
+    from model.module import mean_over_ranks
+
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
+    try:
+        (out / f"rank{rank}").write_text(str(mean_over_ranks(torch.tensor(rank + 1.0)).item()))
+    finally:
+        dist.destroy_process_group()
+
+
+def test_lambdas_constraint_is_the_mean_over_ranks_not_their_sum(tmp_path):
+    """The 2-rank fits above end with the same λ on both ranks, which the constraint's sum over ranks gives too."""
+    torch.multiprocessing.spawn(_mean_of_two_ranks, args=(free_port(), tmp_path), nprocs=2)
+    assert [float((tmp_path / f"rank{rank}").read_text()) for rank in (0, 1)] == [1.5, 1.5]
+
+
 def test_a_job_whose_ranks_a_launcher_started_is_refused_by_every_rank_when_its_directory_is_in_use(built_shards,
                                                                                                  tmp_path):
     """srun, or torchrun over several nodes, starts every rank itself: the refused rank 0 exited before DDP's set-up,
@@ -106,11 +132,8 @@ def test_a_job_whose_ranks_a_launcher_started_is_refused_by_every_rank_when_its_
     checkpoints = tmp_path / "run" / "checkpoints"
     checkpoints.mkdir(parents=True)
     command, env = ddp_fit_command(built_shards, tmp_path, [])
-    with socket.socket() as probe:  # a free port for the job's rendezvous
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
     launched = {"TORCHELASTIC_RUN_ID": "test", "WORLD_SIZE": "2", "LOCAL_WORLD_SIZE": "2", "GROUP_RANK": "0",
-                "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)}
+                "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(free_port())}
     with pid_lock(checkpoints / ".fit.lock"), contextlib.ExitStack() as ranks:
         processes = [ranks.enter_context(subprocess.Popen(
             command, cwd=REPO, env={**env, **launched, "RANK": str(rank), "LOCAL_RANK": str(rank)},

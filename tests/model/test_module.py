@@ -86,6 +86,36 @@ def test_the_kl_averages_every_head_against_the_posterior(small_sizes, fake_batc
     assert all(grad[i].abs().sum() > 0 for i in range(small_sizes.ensemble))  # every head learns from it
 
 
+def test_the_kl_trains_the_prior_heads_with_kl_balance_and_the_posterior_with_the_rest(small_sizes, fake_batch):
+    """eq. 2's KL balancing as the loss wires it: the balanced KL has the plain KL's value whatever the split, so
+    only the gradients tell kl_balance from 1 − kl_balance (prior heads 0.8 of the plain KL's, posterior 0.2)."""
+    module = PretrainModule(small_sizes, lambda_init=0.0, kl_balance=0.8, kl_scale=0.5)
+    obs = module.world_model.observe(fake_batch["frames"], fake_batch["gaps"], fake_batch["num_frames"])
+    post_mean, prior_mean = (obs.post_mean.detach().requires_grad_(), obs.prior_mean.detach().requires_grad_())
+    loss = module.compute_losses(fake_batch, obs._replace(post_mean=post_mean, prior_mean=prior_mean))["loss"]
+    to_posterior, to_priors = torch.autograd.grad(loss, [post_mean, prior_mean])  # only the KL reads these two
+    plain = gaussian_kl(post_mean, obs.post_std.detach(), prior_mean, obs.prior_std.detach()).mean()
+    plain_to_posterior, plain_to_priors = torch.autograd.grad(plain, [post_mean, prior_mean])
+    torch.testing.assert_close(to_priors, 0.5 * 0.8 * plain_to_priors)
+    torch.testing.assert_close(to_posterior, 0.5 * 0.2 * plain_to_posterior)
+
+
+def test_the_posterior_noise_differs_by_step_stream_and_rank_and_repeats_for_each(small_sizes, fake_batch,
+                                                                                    monkeypatch):
+    """One draw per (seed, stream, step, rank), so that a resume draws what the run would have: noise that did not
+    depend on the step (the same draw every step) resumed just as exactly."""
+    module = PretrainModule(small_sizes, noise_seed=7)
+    gaps = fake_batch["gaps"]
+    first = module.noise(gaps, 0, stream=0)
+    assert first.shape == (*gaps.shape, small_sizes.stoch)
+    torch.testing.assert_close(module.noise(gaps, 0, stream=0), first, rtol=0, atol=0)
+    others = [module.noise(gaps, 1, stream=0), module.noise(gaps, 0, stream=1),
+              PretrainModule(small_sizes, noise_seed=8).noise(gaps, 0, stream=0)]
+    monkeypatch.setattr(PretrainModule, "global_rank", property(lambda self: 1))
+    others.append(module.noise(gaps, 0, stream=0))
+    assert all(not torch.allclose(other, first) for other in others)
+
+
 def test_the_hcu_term_trains_the_world_model_with_weight_lambda(small_sizes, fake_batch):
     """The gradient of the loss's HCU part, loss − pred = −λ · E[k · disagreement], reaches the world model's
     weights (eq. 4 minimises it with respect to them; λ alone is held fixed), as −λ times the disagreement's own."""
@@ -242,6 +272,26 @@ def test_gradient_clipping_reaches_every_world_model_weight_after_the_module_mov
     assert norm.item() == pytest.approx(math.sqrt(sum(weight.numel() for weight in weights)))
     clipped = torch.linalg.vector_norm(torch.cat([weight.grad.flatten() for weight in weights]))
     assert clipped.item() == pytest.approx(0.5, rel=1e-4)
+
+
+def test_a_training_step_clips_the_gradient_adam_steps_with(small_sizes, batch_factory, monkeypatch):
+    """grad_clip acts in the fit's own step (on_before_optimizer_step), not only when clip_world_model_gradients is
+    called: the world model's Adam steps with gradients of norm grad_clip."""
+    norms = []
+
+    def record(self, closure=None):
+        if closure is not None:  # Lightning's: it runs on_before_optimizer_step, which clips
+            closure()
+        if len(self.param_groups[0]["params"]) > 1:  # the world model's Adam, not λ's
+            norms.append(torch.linalg.vector_norm(torch.cat([p.grad.flatten() for p in self.param_groups[0]["params"]
+                                                             if p.grad is not None])).item())
+
+    monkeypatch.setattr(torch.optim.Adam, "step", record)
+    module = PretrainModule(small_sizes, grad_clip=1e-3)
+    trainer = L.Trainer(max_steps=2, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    trainer.fit(module, DataLoader([batch_factory(seed=0), batch_factory(seed=1)], batch_size=None))
+    assert norms == [pytest.approx(1e-3, rel=1e-3)] * 2  # the unclipped norm is orders of magnitude larger
 
 
 def test_non_finite_steps_are_skipped_and_counted(small_sizes, batch_factory):
