@@ -132,8 +132,7 @@ class Agent(nn.Module):
         actions = action.cpu().numpy()
         if not np.isfinite(actions).all():  # an env would take it (Meta-World even scores it as solved)
             raise DivergedError("the actor gave a non-finite action (NaN or inf): the agent has diverged; lower "
-                                "actor_lr or model_lr, or set layer_norm: true, and start a new run (checkpoint.pt "
-                                "and best.pt hold the agent as last saved)")
+                                "actor_lr or model_lr, or set layer_norm: true, and start a new run")
         return actions, latent, action
 
     def trainable_state_dict(self) -> dict[str, torch.Tensor]:

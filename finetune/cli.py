@@ -133,7 +133,7 @@ def train_command(argv: list[str], terminated: list[int]) -> int:
     from finetune.config import FinetuneConfig, FinetuneError, load_config, others_settings, parse_override, step_unit
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
-    from finetune.run_dir import CHECKPOINT
+    from finetune.run_dir import CHECKPOINT, saved_agents
     from finetune.termination import Terminated
     from model.config import ConfigError
 
@@ -171,7 +171,10 @@ def train_command(argv: list[str], terminated: list[int]) -> int:
                   file=sys.stderr)
             pretrained = None
         result = _runner(paradigm)(cfg, pretrained, progress=not args.no_progress)
-    except (ConfigError, DivergedError, PretrainedError, FinetuneError, ReplayError) as error:
+    except DivergedError as error:
+        print(f"{parser(subcommand).prog}: error: {error} ({saved_agents(Path(cfg.logdir))})", file=sys.stderr)
+        return 2
+    except (ConfigError, PretrainedError, FinetuneError, ReplayError) as error:
         print(f"{parser(subcommand).prog}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # Ctrl-C, or SIGTERM before the run's own handling; said below, once the run's frames

@@ -115,8 +115,8 @@ def save_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, counters: dic
     weights = agent.trainable_state_dict()
     if diverged := non_finite(weights):
         raise DivergedError(f"the agent's weights are not finite (NaN or inf; e.g. {diverged[0]}): the agent has "
-                            f"diverged; {path.name} was not written, so checkpoint.pt and best.pt hold the agent as "
-                            "last saved; lower model_lr, actor_lr or critic_lr, and start a new run")
+                            f"diverged, and {path.name} was not written over; lower model_lr, actor_lr or critic_lr, "
+                            "and start a new run")
     state = {"agent": weights, "optimizers": agent.optimizer_state_dicts(),
              "counters": counters, "config": dataclasses.asdict(cfg), "torch_rng": torch.get_rng_state(),
              **fingerprint}
@@ -229,8 +229,8 @@ def refuse_changed_settings(cfg: FinetuneConfig, written: dict[str, object], pat
 def refuse_other_run(cfg: FinetuneConfig) -> None:
     """A FinetuneError if cfg.logdir (which holds no checkpoint) holds the config.yaml of a run that stopped before its
     first checkpoint with other settings than cfg's (outside RESUMABLE): starting again there would train on that
-    run's replay episodes and overwrite its config.yaml; or files of something else than a run (a user's, an
-    export), or another program's config.yaml."""
+    run's replay episodes (offline RL keeps none) and overwrite its config.yaml; or files of something else than a
+    run (a user's, an export), or another program's config.yaml."""
     logdir = Path(cfg.logdir)
     path = logdir / "config.yaml"
     if not path.is_file():  # this run's own lock aside, files of something else: mixed in, or overwritten
@@ -247,9 +247,18 @@ def refuse_other_run(cfg: FinetuneConfig) -> None:
         raise FinetuneError(f"{path} is not the config of a `hauwm finetune` run (it has no task or agent), and would "
                             "be overwritten: train in another --logdir")
     if isinstance(written, dict) and (changed := changed_settings(cfg, written)):
+        mixed = ("this one would replace its config.yaml and logs" if cfg.paradigm == "offline" else  # no replay
+                 "its replay episodes would train this one")
         raise FinetuneError(f"{cfg.logdir} holds a run with {', '.join(changed[:3])} that stopped before its first "
-                            f"checkpoint; its replay episodes would train this one: train in another --logdir, or "
-                            f"delete {cfg.logdir} first")
+                            f"checkpoint; {mixed}: train in another --logdir, or delete {cfg.logdir} first")
+
+
+def saved_agents(logdir: Path) -> str:
+    """What a run keeps of its agent, for one that diverged: checkpoint.pt and best.pt as last saved, or none."""
+    kept = [name for name in (CHECKPOINT, BEST) if (logdir / name).is_file()]
+    if not kept:
+        return "no checkpoint had been written yet"
+    return f"{' and '.join(kept)} in {logdir} hold{'s' if len(kept) == 1 else ''} the agent as last saved"
 
 
 def load_checkpoint(path: Path, agent: Agent, cfg: FinetuneConfig, fingerprint: Fingerprint,

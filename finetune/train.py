@@ -132,11 +132,17 @@ def dataset_replay(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int,
     """A replay in memory holding a dataset's episodes (load_dataset), sampled with `rng`; a FinetuneError naming
     `flag` if no episode is long enough for a window of seq_len frames."""
     replay = Replay(None, cfg.replay_capacity, rng)
-    for episode in load_dataset(dataset_id, cfg, action_dim, flag):
+    episodes = load_dataset(dataset_id, cfg, action_dim, flag)
+    for episode in episodes:
         replay.add(episode)
     if not replay.ready(cfg.seq_len):
         raise FinetuneError(f"{flag} {dataset_id}: no episode holds seq_len = {cfg.seq_len} frames (one of "
                             f"{cfg.seq_len - 1} steps or more); lower seq_len")
+    if short := [len(episode["reward"]) - 1 for episode in episodes if len(episode["reward"]) < cfg.seq_len]:
+        steps = sum(len(episode["reward"]) - 1 for episode in episodes)
+        print(f"note: {len(short)} of the {len(episodes)} episodes of {flag} {dataset_id} ({sum(short)} of its {steps} "
+              f"steps) are shorter than a window of seq_len = {cfg.seq_len} frames and are never sampled; lower "
+              "seq_len to train on them", file=sys.stderr)
     return replay
 
 
@@ -210,9 +216,8 @@ def close_window(window: LogWindow, updates: int) -> dict[str, float]:
     metrics = mean_metrics(window.metrics)
     if broken := [f"{name} {value:g}" for name, value in metrics.items() if not math.isfinite(value)]:
         raise DivergedError(f"{', '.join(broken)} in updates {window.updates + 1}..{updates}: the agent's training has "
-                            "diverged, and checkpoint.pt and best.pt hold the agent as last saved. Rewards too large "
-                            "for float32's squares (beyond about 1e18: a dataset's?) do this; else lower model_lr, "
-                            "actor_lr or critic_lr, and start a new run")
+                            "diverged. Rewards too large for float32's squares (beyond about 1e18: a dataset's?) do "
+                            "this; else lower model_lr, actor_lr or critic_lr, and start a new run")
     metrics["updates_per_s"] = (updates - window.updates) / (now - window.began)
     window.updates, window.began, window.metrics = updates, now, []
     return metrics

@@ -134,9 +134,26 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     return datasets, notes
 
 
+def _is_count(value: Any) -> bool:
+    return type(value) is int and value >= 0
+
+
+# the fields of metadata.json that are read (Minari's, then ours under "hauwm"), each where present: (test, wanted)
+METADATA_FIELDS = {"total_episodes": (_is_count, "a whole number ≥ 0"),
+                   "total_steps": (_is_count, "a whole number ≥ 0"),
+                   "dataset_size": (lambda v: type(v) in (int, float), "a size in MB")}
+HAUWM_FIELDS = {"task": (lambda v: isinstance(v, str), "a task's name"),
+                "source": (lambda v: isinstance(v, str), "a word"),
+                "action_repeat": (lambda v: _is_count(v) and v >= 1, "a whole number ≥ 1"),
+                "fast_render": (lambda v: isinstance(v, bool), "true or false"),
+                "has_success": (lambda v: isinstance(v, bool), "true or false"),
+                "complete": (lambda v: isinstance(v, bool), "true or false")}
+
+
 def read_metadata(data: Path) -> dict[str, Any]:
-    """A dataset's data/metadata.json, checked to be an object whose "hauwm" entry (where there is one) is one too; a
-    DatasetError naming the file otherwise (a JSONDecodeError or OSError for a file that cannot be read)."""
+    """A dataset's data/metadata.json, checked to be an object whose "hauwm" entry (where there is one) is one too,
+    with fields of the kinds read (METADATA_FIELDS, HAUWM_FIELDS); a DatasetError naming the file and the field
+    otherwise (a JSONDecodeError or OSError for a file that cannot be read)."""
     from minari.dataset.minari_storage import MinariStorage
 
     metadata = MinariStorage.read_raw_metadata(data)
@@ -144,6 +161,12 @@ def read_metadata(data: Path) -> dict[str, Any]:
         what = (f"its \"{METADATA_KEY}\" entry is {json.dumps(metadata[METADATA_KEY])[:40]}"
                 if isinstance(metadata, dict) else f"it is a JSON {type(metadata).__name__}")
         raise DatasetError(f"{data / 'metadata.json'}: {what}, not an object")
+    for fields, values, prefix in ((METADATA_FIELDS, metadata, ""),
+                                   (HAUWM_FIELDS, metadata.get(METADATA_KEY, {}), f"{METADATA_KEY}.")):
+        for name, (test, wanted) in fields.items():
+            if name in values and not test(values[name]):
+                raise DatasetError(f"{data / 'metadata.json'}: {prefix}{name} is {json.dumps(values[name])[:40]}, not "
+                                   f"{wanted}")
     return metadata
 
 
@@ -176,7 +199,7 @@ def open_dataset(dataset_id: str):
                            f"installation cannot read ({error})") from None
     except DatasetError as error:
         raise DatasetError(f"dataset {dataset_id!r}: {error}; write it again") from None
-    except (ValueError, OSError, KeyError, AssertionError, json.JSONDecodeError) as error:
+    except (ValueError, OSError, KeyError, AssertionError, RuntimeError) as error:  # JSONDecodeError: a ValueError
         raise DatasetError(f"dataset {dataset_id!r} at {path} could not be read by Minari "
                            f"{minari.__version__} ({type(error).__name__}: {error}); a dataset of another Minari "
                            "version needs that version, a damaged one must be written again") from None
@@ -331,8 +354,18 @@ def has_success(dataset) -> bool:
     written = hauwm_metadata(dataset).get("has_success")
     if written is not None:
         return bool(written)
-    first = next(dataset.storage.get_episodes([int(dataset.episode_indices[0])]))
+    index = int(dataset.episode_indices[0])
+    first = next_episode(dataset.storage.get_episodes([index]), dataset.id, index)
     return "success" in (first.get("infos") or {})
+
+
+def next_episode(episodes: Iterator[dict], dataset_id: str, index: int) -> dict:
+    """The next episode (`index`) Minari reads from a dataset's storage; a DatasetError where h5py cannot read it."""
+    try:
+        return next(episodes)
+    except (KeyError, OSError, ValueError, RuntimeError) as error:  # a missing array or a damaged file
+        raise DatasetError(f"dataset {dataset_id!r}: episode {index} could not be read ({type(error).__name__}: "
+                           f"{error}); the dataset is damaged, write it again") from None
 
 
 def iterate_episodes(dataset_id: str, task: str | None = None, action_dim: int | None = None,
@@ -354,11 +387,7 @@ def iterate_episodes(dataset_id: str, task: str | None = None, action_dim: int |
     bar = tqdm(total=dataset.total_episodes, unit=" episode", desc=f"reading {dataset_id}", disable=not progress,
                leave=False, dynamic_ncols=True)
     for index in dataset.episode_indices:
-        try:
-            raw = next(episodes)
-        except (KeyError, OSError, ValueError) as error:  # a missing array or a damaged file, raised by h5py
-            raise DatasetError(f"dataset {dataset_id!r}: episode {index} could not be read "
-                               f"({type(error).__name__}: {error}); the dataset is damaged, write it again") from None
+        raw = next_episode(episodes, dataset_id, index)
         yield _to_replay_layout(f"dataset {dataset_id!r}, episode {index}", raw, view, dataset.action_space.shape[0])
         bar.update()
     bar.close()

@@ -51,7 +51,7 @@ class Summary:
             random_return, expert_return = REFERENCE_RETURNS[self.task]
             full = episode_time_limit(self.task, self.action_repeat)
             short = sum(length < full for length in self.lengths)
-            caveat = ("" if not short else f"; episodes of {high} steps, not the suite's {full}: not comparable"
+            caveat = ("" if not short else f"; episodes of {per_episode} steps, not the suite's {full}: not comparable"
                       if high < full else f"; {short} of {len(self.lengths)} episodes shorter than the suite's {full} "
                       f"steps ({low}-{high}): not comparable")
             lines.append(f"normalised      {s['normalised_return']:.3f} (Table 4: random {random_return:g}, "

@@ -717,10 +717,20 @@ def test_the_normalised_return_of_episodes_shorter_than_the_suites_says_it_is_no
     for steps in (30, 30, 500):
         summary.add({"reward": np.ones(steps + 1, np.float32)})
     assert "2 of 3 episodes shorter than the suite's 500 steps (30-500): not comparable" in "\n".join(summary.lines())
+    summary = Summary(TASK)
+    for steps in (10, 30):  # all shorter, of two lengths: it said "episodes of 30 steps"
+        summary.add({"reward": np.ones(steps + 1, np.float32)})
+    assert "; episodes of 10-30 steps, not the suite's 500: not comparable" in "\n".join(summary.lines())
 
 
-@pytest.mark.parametrize("damage", [lambda m: {**m, "hauwm": None}, lambda m: {**m, "hauwm": "drawer"}, lambda m: []],
-                         ids=["our-settings-null", "our-settings-text", "a-list"])
+@pytest.mark.parametrize("damage", [lambda m: {**m, "hauwm": None}, lambda m: {**m, "hauwm": "drawer"}, lambda m: [],
+                                    # fields of the wrong kind: a TypeError in `list` (hiding every dataset), in
+                                    # Minari's loading or in the summary; a task of null read as "collected on None"
+                                    lambda m: {**m, "dataset_size": None}, lambda m: {**m, "total_episodes": "two"},
+                                    lambda m: {**m, "hauwm": {**m["hauwm"], "task": None}},
+                                    lambda m: {**m, "hauwm": {**m["hauwm"], "action_repeat": "1"}}],
+                         ids=["our-settings-null", "our-settings-text", "a-list", "size-null", "episodes-text",
+                              "task-null", "action-repeat-text"])
 def test_a_metadata_file_of_another_shape_is_named_damaged_and_the_others_listed(random_episodes, datasets_root,
                                                                                  capsys, damage):
     """One such file made `hauwm datasets list` fail with an AttributeError or TypeError, for every dataset there."""
@@ -808,3 +818,31 @@ def test_episodes_that_end_in_a_terminal_state_are_counted_and_a_run_says_it_tre
     assert main(["inspect", "test/time-limits-v0", "--no-progress"]) == 0
     load_dataset("test/time-limits-v0", tiny_config(task=TASK), 4, "--dataset")
     assert "terminal" not in "".join(capsys.readouterr())
+
+
+@pytest.mark.parametrize("made_here", [True, False], ids=["collected", "made-elsewhere"])
+@pytest.mark.parametrize("damage", ["zeroed", "truncated"])
+def test_a_damaged_hdf5_file_is_named_not_a_traceback(random_episodes, datasets_root, capsys, made_here, damage):
+    """Bytes zeroed inside the HDF5 file raised h5py's RuntimeError through inspect, merge and the runs; a truncated
+    file of a dataset made elsewhere raised its OSError where inspect looked for success flags."""
+    if made_here:
+        write_dataset("test/damaged-v0", iter(random_episodes), {"task": TASK})
+    else:
+        write_foreign("test/damaged-v0", gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8),
+                      np.zeros((9, 64, 64, 3), np.uint8))
+    path = datasets_root / "test" / "damaged-v0" / "data" / "main_data.hdf5"
+    with open(path, "r+b") as file:
+        if damage == "zeroed":  # the layout's own records, past the superblock
+            file.seek(2000)
+            file.write(bytes(4000))
+        else:
+            file.truncate(5000)
+    assert main(["inspect", "test/damaged-v0", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "test/damaged-v0" in err and "write it again" in err and "Traceback" not in err, err
+    with pytest.raises(DatasetError, match="test/damaged-v0.* write it again"):
+        load_episodes("test/damaged-v0")
+    write_dataset("test/kept-v0", iter(random_episodes[:1]), {"task": TASK})
+    assert main(["merge", "test/kept-v0", "test/damaged-v0", "--out", "test/merged-v0", "--no-progress"]) == 2
+    assert "Traceback" not in capsys.readouterr().err
+    assert not (datasets_root / "test" / "merged-v0").exists()

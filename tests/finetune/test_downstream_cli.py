@@ -144,3 +144,22 @@ def test_ctrl_c_while_the_settings_are_read_is_one_line(monkeypatch, capsys):
     monkeypatch.setattr("finetune.config.load_config", interrupted)
     assert main(["--config", "configs/finetune/demo.yaml"]) == 130  # an UnboundLocalError (no cfg yet) before
     assert capsys.readouterr().err.strip() == "hauwm finetune: interrupted, before the run started"
+
+
+def test_a_diverged_run_says_which_checkpoints_hold_its_agent(monkeypatch, tmp_path, capsys):
+    """A run that diverged before its first checkpoint said that checkpoint.pt and best.pt held its agent."""
+    from finetune.agent import DivergedError
+
+    def diverges(cfg, pretrained, progress):
+        raise DivergedError("model_loss inf in updates 1..1: the agent's training has diverged")
+
+    monkeypatch.setattr(finetune.offline, "train_offline", diverges)
+    command = ["offline", "--config", "configs/offline/demo.yaml", "--dataset", "x", "--logdir", str(tmp_path)]
+    assert main(command) == 2
+    assert capsys.readouterr().err.endswith("has diverged (no checkpoint had been written yet)\n")
+    (tmp_path / "checkpoint.pt").touch()
+    assert main(command) == 2
+    assert f"has diverged (checkpoint.pt in {tmp_path} holds the agent as last saved)\n" in capsys.readouterr().err
+    (tmp_path / "best.pt").touch()
+    assert main(command) == 2
+    assert f"(checkpoint.pt and best.pt in {tmp_path} hold the agent as last saved)" in capsys.readouterr().err

@@ -208,7 +208,7 @@ def test_a_diverged_agent_never_replaces_the_last_good_checkpoint(export_dir, ti
     with torch.no_grad():
         next(agent.behavior.critic.parameters()).view(-1)[0] = float("nan")
     with pytest.raises(DivergedError, match=r"the agent's weights are not finite \(NaN or inf; e.g. behavior.critic.* "
-                                            r"checkpoint.pt was not written"):
+                                            r"checkpoint.pt was not written over"):
         save_checkpoint(checkpoint, agent, cfg, {"env_steps": 2}, fingerprint)
     assert checkpoint.read_bytes() == good and not list(tmp_path.glob(".*.partial"))
 

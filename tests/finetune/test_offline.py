@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 
+import dataclasses
 import math
 import shutil
 from types import SimpleNamespace
@@ -266,3 +267,33 @@ def test_a_loss_that_is_not_finite_stops_the_run_and_names_it(export_dir, tiny_c
     with pytest.raises(DivergedError, match=r"model_loss inf, reward_nll inf.* in updates 1\.\.1: the agent's training "
                                             r"has diverged.* Rewards too large"):
         train_offline(cfg, export_dir, progress=False)
+
+
+def test_an_offline_run_stopped_before_its_first_checkpoint_is_refused_without_a_replay_it_lacks(
+        export_dir, tiny_config, tmp_path, two_episodes):
+    """The refusal of other settings in its --logdir said that its replay episodes would train the new run: an
+    offline run keeps no replay."""
+    cfg = offline_config(tiny_config, tmp_path / "run", 2)
+    train_offline(cfg, export_dir, progress=False)
+    for name in (CHECKPOINT, BEST):  # as a run stopped before its first checkpoint leaves its directory
+        (tmp_path / "run" / name).unlink(missing_ok=True)
+    with pytest.raises(FinetuneError, match=r"holds a run with penalty_scale=2\.5 \(asked: 1\.0\) that stopped before "
+                                            r"its first checkpoint; this one would replace its config.yaml and logs: "
+                                            r"train in another --logdir"):
+        train_offline(offline_config(tiny_config, tmp_path / "run", 2, penalty_scale=1.0), export_dir, progress=False)
+
+
+def test_episodes_shorter_than_a_window_are_named_as_never_sampled(tiny_config, minari_dataset, random_episodes,
+                                                                    capsys):
+    """A medexp merged from 12-step and 5-step episodes trained on the long ones only, without a word (seq_len 8)."""
+    from finetune.train import dataset_replay
+
+    episodes = random_episodes(2, 12, 4) + random_episodes(3, 5, 4, seed=1)
+    minari_dataset("test/mixed-lengths-v0", episodes, "metaworld_drawer_close")
+    cfg = offline_config(tiny_config, "unused", 2, dataset="test/mixed-lengths-v0")
+    replay = dataset_replay(cfg.dataset, cfg, 4, "--dataset", np.random.default_rng(0))
+    assert ("note: 3 of the 5 episodes of --dataset test/mixed-lengths-v0 (15 of its 39 steps) are shorter than a "
+            "window of seq_len = 8 frames and are never sampled; lower seq_len") in capsys.readouterr().err
+    assert {len(window) for window in replay.sample(16, 8)["reward"]} == {8}
+    dataset_replay(cfg.dataset, dataclasses.replace(cfg, seq_len=6), 4, "--dataset", np.random.default_rng(0))
+    assert "never sampled" not in capsys.readouterr().err  # 6 frames: every episode holds a window
