@@ -136,28 +136,34 @@ def test_clips_that_decord_cannot_open_are_decoded_by_opencv_and_counted(sample_
     assert sum(json.loads(path.read_text())["decoded_by_opencv"] for path in tmp_path.glob("*.stats.json")) == 1
 
 
-def decode_with_opencv(path, size):
-    """An independent decode: OpenCV, every frame, squashed with INTER_AREA."""
+def decode_with_opencv(path, size, crop=False):
+    """An independent decode: OpenCV, every frame, its centre square cut out where `crop`, resized with INTER_AREA."""
     capture, frames = cv2.VideoCapture(str(path)), []
     while True:
         ok, frame = capture.read()
         if not ok:
             return np.stack(frames)
+        if crop:
+            height, width = frame.shape[:2]
+            side = min(height, width)
+            frame = frame[(height - side) // 2:(height + side) // 2, (width - side) // 2:(width + side) // 2]
         frames.append(cv2.resize(frame[:, :, ::-1], (size, size), interpolation=cv2.INTER_AREA))
 
 
-def test_stored_frames_equal_an_independent_decode(sample_ssv2, clean_annotations, built_shards, tmp_path):
+@pytest.mark.parametrize("resize", ["squash", "center-crop"])
+def test_stored_frames_equal_an_independent_decode(sample_ssv2, clean_annotations, built_shards, tmp_path, resize):
     raw = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
-                      splits=["validation"], encoding="raw", max_error_rate=0.0)
+                      splits=["validation"], encoding="raw", max_error_rate=0.0, resize=resize)
     build(raw, log=quiet)
-    for directory, extension in ((tmp_path, "npy"), (built_shards, "jpgs")):
+    built = [(tmp_path, "npy")] + ([(built_shards, "jpgs")] if resize == "squash" else [])  # the demo's: squashed
+    for directory, extension in built:
         members = tar_members(directory / "validation-000000.tar")
         ids = sorted({name.split(".")[0] for name in members})
         assert len(ids) == 3
         for clip_id in ids:
             stored = decode_frames(members[f"{clip_id}.{extension}"], extension)
             metadata = json.loads(members[f"{clip_id}.json"])
-            source = decode_with_opencv(sample_ssv2 / "videos" / f"{clip_id}.webm", 64)
+            source = decode_with_opencv(sample_ssv2 / "videos" / f"{clip_id}.webm", 64, crop=resize == "center-crop")
             assert stored.shape == source.shape == (metadata["num_frames"], 64, 64, 3)
             assert metadata["source_height"] == 240 and metadata["fps"] == 12.0
             if extension == "npy":

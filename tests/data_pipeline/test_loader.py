@@ -154,6 +154,9 @@ def test_each_epoch_deals_the_shards_to_the_streams_anew_and_all_of_them(built_s
     deals = [(tuple(dataset.stream_urls(0, epoch)), tuple(dataset.stream_urls(1, epoch))) for epoch in range(6)]
     assert all(sorted(first + second) == sorted(dataset.urls) for first, second in deals)  # every shard, once
     assert len(set(deals)) > 1  # the global shuffle with seed + epoch moves shards between streams
+    other_seed = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=2, seed=1)
+    assert [(tuple(other_seed.stream_urls(0, epoch)), tuple(other_seed.stream_urls(1, epoch)))
+            for epoch in range(5)] == deals[1:]  # seed 1's epoch e is seed 0's epoch e + 1 (seed + epoch)
 
 
 def test_real_dataloader_workers_yield_len_batches_without_repeats_within_a_pass(built_shards):

@@ -15,6 +15,7 @@ import signal
 import shutil
 import types
 
+import cv2
 import gymnasium
 import h5py
 import minari
@@ -330,9 +331,12 @@ def test_missing_malformed_and_existing_ids_are_refused_with_what_exists(random_
 def test_images_are_found_and_resized_or_refused(capsys):
     steps = 3
     chw = gymnasium.spaces.Box(0, 255, (3, 84, 84), np.uint8)
-    write_foreign("other/chw84-v0", chw, np.full((steps + 1, 3, 84, 84), 200, np.uint8))
+    t, c, y, x = np.ogrid[:steps + 1, :3, :84, :84]  # frames unlike under a swap of H and W, a crop or a shift
+    frames = ((40 * t + 60 * c + 3 * y + x // 2) % 256).astype(np.uint8)  # [T+1, 3, 84, 84]
+    write_foreign("other/chw84-v0", chw, frames)
     (episode,) = load_episodes("other/chw84-v0", action_dim=4, progress=False)
-    assert episode["obs"].shape == (steps + 1, 3, 64, 64) and (episode["obs"] == 200).all()  # INTER_AREA resize
+    resized = [cv2.resize(frame.transpose(1, 2, 0), (64, 64), interpolation=cv2.INTER_AREA) for frame in frames]
+    np.testing.assert_array_equal(episode["obs"], np.stack(resized).transpose(0, 3, 1, 2))  # [T+1, 3, 64, 64]
     assert episode["success"].shape == (steps + 1,) and not episode["success"].any()  # no success in this suite
     assert main(["inspect", "other/chw84-v0", "--task", TASK, "--no-progress"]) == 0  # made elsewhere: 4-dim actions
     assert f"task            {TASK}" in capsys.readouterr().out

@@ -16,8 +16,9 @@ from finetune.agent import Agent
 from finetune.envs.base import PixelEnv
 from finetune.run_dir import (BEST, CHECKPOINT, exclusive, export_fingerprint, load_checkpoint, read_state, resume,
                                run_config, run_fingerprint, save_checkpoint)
-from finetune.train import (build_agent, evaluate, incomparable_returns_note, resolve_device, start_run, task_env,
-                            train)
+import finetune.train
+from finetune.train import (EVAL_SEED, build_agent, episode_seed, evaluate, incomparable_returns_note, resolve_device,
+                            start_run, task_env, train)
 from model.export import export_frozen
 from model.world_model import WorldModel
 
@@ -39,7 +40,9 @@ def tiny_run_settings(logdir, **extra) -> list[str]:
     return args
 
 
-def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(export_dir, tmp_path, capsys):
+def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(export_dir, tmp_path, capsys, monkeypatch):
+    eval_seeds = []
+    monkeypatch.setattr(finetune.train, "task_env", lambda cfg, seed: eval_seeds.append(seed) or task_env(cfg, seed))
     logdir = tmp_path / "run"
     args = ["--config", "configs/finetune/demo.yaml", "--pretrained", str(export_dir)]
     args += tiny_run_settings(logdir, time_limit=20, prefill=80, eval_every=100, checkpoint_every=100, eval_episodes=1)
@@ -68,6 +71,15 @@ def test_dmc_run_through_the_cli_writes_logs_and_a_checkpoint_that_resumes(expor
     assert [int(r["env_step"]) for r in rows(logdir / "episodes.csv")][-2:] == [240, 280]
     assert [int(r["env_step"]) for r in rows(logdir / "eval.csv")] == [100, 200, 280]
     assert len(list((logdir / "replay").glob("*.npz"))) == 7
+    # the resumed run reseeds from its progress: its env does not replay the fresh run's episodes from their start
+    # (its first episode, the run's sixth, starts from episode_seed(seed, env 0, 5 episodes)), nor its evaluations
+    first_frames = {int(path.name[:6]): np.load(path)["obs"][0] for path in (logdir / "replay").glob("*.npz")}
+    probe = task_env(cfg, 0)
+    resumed_start = probe.reset(seed=episode_seed(cfg.seed, 0, 5))[0]
+    probe.close()
+    np.testing.assert_array_equal(first_frames[5], resumed_start)
+    assert not np.array_equal(first_frames[5], first_frames[0])
+    assert cfg.seed == 0 and [seed for seed in eval_seeds if seed] == [EVAL_SEED, EVAL_SEED + 200]  # 0: a probe
 
     capsys.readouterr()
     assert main(args + ["--steps", "200"]) == 0  # a budget the run has already spent: it says so, and changes nothing

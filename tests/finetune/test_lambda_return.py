@@ -109,3 +109,28 @@ def test_the_losses_are_the_documented_formulas_and_the_target_follows_the_criti
     learner.step(actor_loss, critic_loss, feats, {})
     for target, before, online in zip(learner.target_critic.parameters(), target_before, learner.critic.parameters()):
         torch.testing.assert_close(target, torch.lerp(before, online, 0.02))
+
+
+def test_each_loss_trains_only_its_own_network():
+    """The critic regresses on sg(V^λ): its loss gives the actor no gradient (through the returns, which depend on the
+    actions), and the actor's loss gives the critic none (it bootstraps from the target critic). The formula test
+    above cannot see a missing stop-gradient: its rewards do not depend on the actor."""
+    torch.manual_seed(0)
+    learner = ActorCritic(feat_dim=4, action_dim=2, units=8, horizon=3)
+
+    def imagine(start, policy, horizon):  # z moves with the action, reward = first action component
+        feats, rewards, entropies = [start], [], []
+        for _ in range(horizon):
+            dist = policy(feats[-1].detach())
+            action = dist.rsample()
+            entropies.append(dist.entropy())
+            rewards.append(action[:, 0])
+            feats.append(feats[-1] + action.sum(-1, keepdim=True))
+        return torch.stack(feats), torch.stack(rewards), torch.stack(entropies)
+
+    actor_loss, critic_loss, _, _ = learner.losses(imagine, torch.randn(16, 4))
+    actor, critic = list(learner.actor.parameters()), list(learner.critic.parameters())
+    assert all(grad is None for grad in torch.autograd.grad(critic_loss, actor, retain_graph=True, allow_unused=True))
+    assert all(grad is None for grad in torch.autograd.grad(actor_loss, critic, retain_graph=True, allow_unused=True))
+    assert all(grad is not None and grad.any() for grad in torch.autograd.grad(critic_loss, critic, retain_graph=True))
+    assert any(grad.any() for grad in torch.autograd.grad(actor_loss, actor))

@@ -181,6 +181,41 @@ def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_con
         train_offline(offline_config(tiny_config, tmp_path / "d", 2, replay_capacity=20), export_dir, progress=False)
 
 
+def test_the_rollout_given_to_the_penalty_holds_the_sampled_states_and_the_heads_that_drew_them(export_dir,
+                                                                                                   tiny_config):
+    """u is computed on what `imagine` hands the reward function: each step's sampled s̃_{t+1} (the one the features
+    and the next step use) and the M prior heads of the step from s̃_t with a_t. The formula's own test builds that
+    rollout itself, so the heads' mean handed on in place of the sample went unnoticed."""
+    from finetune.offline import OfflineAgent
+    from finetune.train import build_agent
+    from model.rssm import RSSMState
+
+    cfg = tiny_config(paradigm="offline", model_heads=3, horizon=3)
+    agent = build_agent(cfg, 2, export_dir, torch.device("cpu"), OfflineAgent)
+    generator = np.random.default_rng(0)
+    with torch.no_grad():
+        start, _ = agent.world_model.observe(
+            torch.as_tensor(generator.integers(0, 256, (2, 4, 3, 64, 64), dtype=np.uint8)),
+            torch.as_tensor(generator.uniform(-1, 1, (2, 4, 2)).astype(np.float32)))
+        handed = []
+
+        def recording(rollout):  # a reward function that keeps what it is given
+            handed.append(rollout)
+            return rollout.new_feats.new_zeros(rollout.new_feats.shape[:2])
+
+        agent.world_model.imagine(start, agent.behavior.actor, 3, recording)
+        rollout, rssm = handed[0], agent.world_model.rssm
+        state = RSSMState(start.new.deter.flatten(0, 1), start.new.stoch.flatten(0, 1))  # N = B · L starts
+        for t in range(3):
+            deter, mean, std = rssm.img_step(state, rollout.actions[t])
+            torch.testing.assert_close(rollout.prior_mean[t], mean)
+            torch.testing.assert_close(rollout.prior_std[t], std)
+            torch.testing.assert_close(rollout.new_feats[t], rssm.feature(RSSMState(deter, rollout.new_stoch[t])))
+            torch.testing.assert_close(rollout.feats[t + 1][:, -rssm.feature_dim:], rollout.new_feats[t])
+            state = RSSMState(deter, rollout.new_stoch[t])
+    assert rollout.prior_mean.shape[1] == 3 and not torch.allclose(rollout.new_stoch, rollout.prior_mean.mean(1))
+
+
 def test_the_frozen_disagreement_term_gives_the_actor_no_gradient(export_dir, tiny_config):
     """The frozen stream imagines without the actions: adding its disagreement to u changes the rewards but
     not their gradient with respect to the actor (dynamics backprop)."""
