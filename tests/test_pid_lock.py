@@ -24,6 +24,26 @@ def test_a_second_holder_is_refused_with_the_first_ones_pid_and_the_lock_goes_wi
         assert path.read_text() == str(os.getpid())
 
 
+def test_a_lock_whose_file_its_last_holder_deleted_meanwhile_is_taken_on_the_new_file(tmp_path, monkeypatch):
+    """The holder before deleted the file between this process's open and its lock: the lock taken on the deleted
+    file would be held by nobody else's reckoning, and a third process would lock the new file beside it."""
+    import hauwm.pid_lock
+
+    path, opened = tmp_path / ".lock", []
+    flock_soon = hauwm.pid_lock._flock_soon
+
+    def deleted_first(lock):
+        if not opened:  # the first file opened: its holder deletes it now and lets go
+            opened.append(lock)
+            path.unlink()
+        return flock_soon(lock)
+
+    monkeypatch.setattr(hauwm.pid_lock, "_flock_soon", deleted_first)
+    path.write_text("")
+    with pid_lock(path):
+        assert len(opened) == 1 and path.is_file() and lock_holder(path) == os.getpid()  # the file at `path`
+
+
 def test_a_lock_asked_for_while_lock_holder_looks_is_not_refused(tmp_path):
     """lock_holder holds a shared lock for an instant; a process asking for the lock then was told it was held."""
     import fcntl

@@ -1,9 +1,11 @@
 """`hauwm shards inspect|preview|sample-data` through the command line entry point."""
 
 import errno
+import io
 import json
 import re
 import shutil
+import tarfile
 from pathlib import Path
 
 import cv2
@@ -29,6 +31,24 @@ def test_inspect_reports_counts_and_verify_catches_a_damaged_shard(built_shards,
     assert main(["inspect", str(damaged), "--verify"]) == 1
     out = capsys.readouterr().out
     assert "FAILED train-000002.tar: SHA-256 differs from the manifest" in out
+
+    (damaged / "train-000001.tar").unlink()  # a shard gone since the build
+    relabelled = damaged / "train-000003.tar"  # a clip whose JSON no longer counts its frames
+    with tarfile.open(relabelled) as tar:
+        members = [(member, tar.extractfile(member).read()) for member in tar.getmembers()]
+    clip = None
+    with tarfile.open(relabelled, "w") as tar:
+        for member, data in members:
+            if clip is None and member.name.endswith(".json"):  # the first clip's
+                metadata = json.loads(data)
+                metadata["num_frames"] += 1
+                data, clip = json.dumps(metadata).encode(), member.name.split(".")[0]
+                member.size = len(data)
+            tar.addfile(member, io.BytesIO(data))
+    assert main(["inspect", str(damaged), "--verify"]) == 1
+    out = capsys.readouterr().out
+    assert "FAILED train-000001.tar: missing" in out
+    assert re.search(rf"FAILED train-000003.tar: clip {clip} stores \d+ frames, its JSON says \d+", out), out
 
 
 @pytest.mark.parametrize(("edit", "problem"), [  # manifests edited by hand that verify used to call a match

@@ -28,6 +28,7 @@ def test_compiled_losses_and_gradients_equal_eager(small_sizes, batch_factory):
     batch = batch_factory(batch_size=2, length=3)
     noise = module.world_model.rssm.draw_noise(2, 3, torch.Generator().manual_seed(0))
     eager_terms, eager_grads = losses_and_gradients(module, module.training_losses, batch, noise)
+    torch._dynamo.reset()
     step = compiled(module.training_losses, "default", torch.device("cpu"))
     for _ in range(2):  # the second call runs the cached graphs
         terms, grads = losses_and_gradients(module, step, batch, noise)
@@ -38,6 +39,7 @@ def test_compiled_losses_and_gradients_equal_eager(small_sizes, batch_factory):
         total = torch.cat([grad.flatten() for grad in eager_grads.values()]).norm()
         for name, grad in eager_grads.items():
             assert (grads[name] - grad).norm() <= 1e-3 * grad.norm() + 1e-6 * total, name
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 1  # compiled, not eager twice
 
 
 def test_reduce_overhead_falls_back_to_default_off_the_gpu(monkeypatch, caplog):
@@ -47,8 +49,10 @@ def test_reduce_overhead_falls_back_to_default_off_the_gpu(monkeypatch, caplog):
         compiled(len, "reduce-overhead", torch.device("cpu"))
     assert modes == [("default", False)]
     assert "needs CUDA graphs (a GPU); compiling with mode default on cpu" in caplog.text
-    assert compiled(len, "off", torch.device("cpu")) is len and len(modes) == 1
-    assert compiled(len, "auto", torch.device("cpu")) is len and len(modes) == 1  # auto: CUDA graphs on a GPU only
+    compiled(len, "default", torch.device("cpu"))
+    assert modes[1:] == [("default", False)]  # default: inductor on any device
+    assert compiled(len, "off", torch.device("cpu")) is len and len(modes) == 2
+    assert compiled(len, "auto", torch.device("cpu")) is len and len(modes) == 2  # auto: CUDA graphs on a GPU only
 
 
 class Losses(L.Callback):

@@ -3,6 +3,7 @@ own gap k, grouped by k, and the rank correlation over the per-k means."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import torch
@@ -56,3 +57,49 @@ def test_horizon_metrics_average_per_k_skip_unseen_gaps_and_rank_the_per_k_means
     assert metrics["recon_mse_all"] == 12 / 15  # pooled over frames, not a mean of the per-k means
     nothing = horizon_metrics(torch.zeros(3, 5, dtype=torch.float64))
     assert math.isnan(nothing["recon_mse_all"]) and math.isnan(nothing["spearman_k_disagreement"])
+
+
+@torch.no_grad()
+def test_analyze_rolls_each_head_out_from_the_last_observed_state_with_the_clips_own_gaps(small_sizes, tmp_path):
+    """`analyze`'s rollout rows: the ensemble-mean path and each head's own path, imagined from the state after the
+    `context` observed frames, conditioned on the clip's own later gaps (its test checked only their number)."""
+    from model.analyze import rollout, seeded_noise
+    from model.export import export_frozen, load_frozen
+
+    from conftest import make_batch  # noqa: I001 (tests/model/conftest.py)
+
+    torch.manual_seed(0)
+    model = load_frozen(export_frozen(WorldModel(small_sizes), tmp_path, {"source": "tests"}))
+    batch = make_batch(batch_size=2, length=8, seed=3)
+    batch["gaps"][0] = torch.tensor([0, 2, 1, 3, 1, 4, 2, 5])  # later gaps that differ: ignoring them would show
+    batch["indices"] = batch["gaps"].cumsum(1)
+    batch["num_frames"] = batch["indices"][:, -1] + 1
+    data = rollout(model, batch, heads=3, context=4, seed=7)
+    obs = model.observe(batch["frames"][:1, :4], batch["gaps"][:1, :4], batch["num_frames"][:1],
+                        seeded_noise(model, batch["gaps"][:1, :4], 7))
+    conds = model.conditions(batch["gaps"][:1, 4:], batch["num_frames"][:1])  # [1, 4, C]
+    expected = {"ensemble mean": model.decode(model.rssm.imagine(obs.state(3), conds)[0])[0]}
+    expected |= {f"head {i + 1}": model.decode(model.rssm.imagine(obs.state(3), conds, head=i)[0])[0] for i in range(3)}
+    assert data["rows"].keys() == expected.keys()
+    for name, images in expected.items():
+        torch.testing.assert_close(data["rows"][name], images)
+    assert not torch.allclose(data["rows"]["head 1"], data["rows"]["head 2"])
+    assert data["gaps"] == batch["gaps"][0, 4:].tolist()
+
+
+@torch.no_grad()
+def test_analyzes_horizon_figures_sum_every_batch_with_its_own_seeded_noise(small_sizes):
+    """The same seed gives the same figures (noise drawn from the global RNG would not), and batch i's noise comes
+    from seed + i."""
+    from model.analyze import horizon_figure_data, seeded_noise
+
+    from conftest import make_batch  # noqa: I001 (tests/model/conftest.py)
+
+    torch.manual_seed(0)
+    model = WorldModel(small_sizes).eval()
+    batches = [make_batch(batch_size=2, length=6, seed=i) for i in range(2)]
+    figures = json.dumps(horizon_figure_data(model, batches, 5, seed=11))  # NaN (a gap never drawn) as NaN
+    assert json.dumps(horizon_figure_data(model, batches, 5, seed=11)) == figures
+    sums = sum(horizon_sums(model, batch, 5, seeded_noise(model, batch["gaps"], 11 + i))[0]
+               for i, batch in enumerate(batches))
+    assert figures == json.dumps(horizon_metrics(sums))

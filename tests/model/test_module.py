@@ -14,6 +14,7 @@ from lightning.pytorch.plugins import MixedPrecision
 from torch.utils.data import DataLoader
 
 from model.config import WorldModelConfig
+from model.evaluation import horizon_metrics, horizon_sums
 from model.losses import disagreement, gaussian_kl, k_scaled_disagreement
 from model.config import ConfigError
 from model.module import PretrainModule
@@ -292,6 +293,27 @@ def test_a_training_step_clips_the_gradient_adam_steps_with(small_sizes, batch_f
                         enable_progress_bar=False, enable_model_summary=False)
     trainer.fit(module, DataLoader([batch_factory(seed=0), batch_factory(seed=1)], batch_size=None))
     assert norms == [pytest.approx(1e-3, rel=1e-3)] * 2  # the unclipped norm is orders of magnitude larger
+
+
+def test_validation_logs_each_gaps_error_and_disagreement_summed_over_its_batches(small_sizes, batch_factory):
+    """val/open_loop_mse_k{k} and val/disagreement_k{k}: model/evaluation.py's statistics over every validation batch
+    (each with its own noise), each under its own name."""
+    module = PretrainModule(small_sizes, k_max=5)
+    batches = [batch_factory(seed=i) for i in range(2)]
+    trainer = L.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False)
+    logged = trainer.validate(module, DataLoader(batches, batch_size=None), verbose=False)[0]
+    with torch.no_grad():
+        sums = sum(horizon_sums(module.world_model, batch, 5, module.noise(batch["gaps"], i, stream=1))[0]
+                   for i, batch in enumerate(batches))
+    metrics = horizon_metrics(sums)
+    assert logged["val/open_loop_mse"] == pytest.approx(metrics["recon_mse_all"], rel=1e-5)
+    seen = [(k, mse, spread) for k, count, mse, spread in
+            zip(metrics["k"], metrics["count"], metrics["recon_mse"], metrics["disagreement"]) if count]
+    assert len(seen) >= 3
+    for k, mse, spread in seen:
+        assert logged[f"val/open_loop_mse_k{k}"] == pytest.approx(mse, rel=1e-5)
+        assert logged[f"val/disagreement_k{k}"] == pytest.approx(spread, rel=1e-5)
 
 
 def test_non_finite_steps_are_skipped_and_counted(small_sizes, batch_factory):

@@ -49,6 +49,40 @@ def test_observe_and_imagine_shapes():
     assert not torch.allclose(head_states.stoch, states.stoch)  # not the ensemble-mean path
 
 
+def test_the_transition_is_a_gru_of_the_previous_state_and_the_condition():
+    """deter_t = GRU(deter_{t−1}, ELU(W [stoch_{t−1}; c_t] + b)), written out by hand (torch's GRUCell equations):
+    the filter's test steps img_step itself, so a transition that dropped its previous stoch, its condition (the
+    gap) or its recurrence passed it too."""
+    rssm = small_rssm()
+    prev, cond = RSSMState(torch.randn(4, 20), torch.randn(4, 6)), torch.randn(4, 8)
+    x = F.elu(torch.cat([prev.stoch, cond], -1) @ rssm.img_in[0].weight.T + rssm.img_in[0].bias)
+    cell = rssm.cell
+    x_r, x_z, x_n = (x @ cell.weight_ih.T + cell.bias_ih).chunk(3, -1)
+    h_r, h_z, h_n = (prev.deter @ cell.weight_hh.T + cell.bias_hh).chunk(3, -1)
+    reset, update = torch.sigmoid(x_r + h_r), torch.sigmoid(x_z + h_z)
+    candidate = torch.tanh(x_n + reset * h_n)
+    torch.testing.assert_close(rssm.transition(prev, cond), (1 - update) * candidate + update * prev.deter)
+    deter = rssm.transition(prev, cond)
+    for changed in (RSSMState(prev.deter, prev.stoch + 1), RSSMState(prev.deter + 1, prev.stoch)):
+        assert not torch.allclose(rssm.transition(changed, cond), deter)
+    assert not torch.allclose(rssm.transition(prev, cond + 1), deter)
+
+
+@pytest.mark.parametrize("head", [None, 2])
+def test_imagine_feeds_back_the_ensemble_mean_or_its_heads_own_mean_from_the_start_state(head):
+    rssm = small_rssm()
+    obs = rssm.observe(torch.randn(3, 7, 12), torch.randn(3, 7, 8))
+    conds = torch.randn(3, 4, 8)
+    states, means = rssm.imagine(obs.state(6), conds, head=head)
+    state = obs.state(6)
+    for t in range(4):  # by hand, from the start state
+        deter, mean, _ = rssm.img_step(state, conds[:, t])
+        state = RSSMState(deter, mean.mean(0) if head is None else mean[head])
+        torch.testing.assert_close(states.deter[:, t], state.deter)
+        torch.testing.assert_close(states.stoch[:, t], state.stoch)
+        torch.testing.assert_close(means[:, :, t], mean)
+
+
 def test_batched_heads_equal_a_per_head_reference():
     rssm = small_rssm(ensemble=7)
     deter, cond = torch.randn(9, 20), torch.randn(9, 8)
