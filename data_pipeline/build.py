@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from hauwm.arguments import MAX_TIMEOUT
 from hauwm.atomic import written_whole
+from hauwm.pid_lock import locked
 
 from .shard_format import ENCODINGS, ERRORS_FILE, FORMAT_VERSION, MANIFEST_FILE, add_clip, open_writer
 from .ssv2 import AnnotationError, ClipRecord, annotation_path, load_labels, load_split
@@ -226,6 +227,15 @@ def clips_held(stats: dict) -> set[str]:
     return {clip for clip in stats["planned"] if clip not in failed}
 
 
+def part_lock(config: BuildConfig):
+    """Hold the lock of this --part of the build into --out (hauwm.pid_lock) while the block runs: two builds of one
+    part (a job submitted twice, a requeue) wrote the same .partial files, and one committed a shard whose recorded
+    SHA-256 was taken while the other still wrote it."""
+    return locked(config.out / f".build.part-{config.part}.lock", lambda pid: BuildError(
+        f"{config.out} is being built by another `hauwm shards build` of part {config.part} (pid {pid}): wait for it "
+        "to end, or build into another --out"))
+
+
 def partial_tar(out: Path, name: str) -> Path:
     """Where shard `name` is written before it is complete (renamed to `name`.tar then)."""
     return out / f".{name}.tar.partial"
@@ -346,61 +356,68 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
         raise BuildError(f"--videos {config.videos} holds none of the {len(valid)} clips this part has left to "
                          f"build (e.g. no {valid[0].id}.webm){found}")
     config.out.mkdir(parents=True, exist_ok=True)
-    check_settings(config.out, settings, digest, config.part)
-    log(f"shards: {len(plans)} in all, {len(mine)} in part {config.part}/{config.num_parts}, "
-        f"{len(kept)} already complete, {len(todo)} to build ({len(valid)} clips, {config.workers} workers)")
-    started = time.monotonic()
-    built, unchanged = [], []  # unchanged: a message for each shard --retry-failed left as it was
-    decode = DecodeSettings(config.size, config.resize, config.min_frames, config.encoding, config.quality)
-    with DecodePool(config.workers, decode, config.timeout) as pool, \
-            tqdm(total=len(valid), desc="build", unit="clip", disable=None) as progress:
-        results = pool.imap(config.videos / f"{record.id}.webm" for record in valid)
-        for plan in todo:
-            stats = write_shard(config, plan, results, digest, progress)
-            before = complete.get(plan.name)  # a shard that --retry-failed rebuilds must not lose a clip it holds
-            if before is not None and (lost := sorted(clips_held(before) - clips_held(stats))):
-                discard_shard(config, stats)
-                reasons = Counter(e["reason"] for e in stats["errors"] if e["id"] in lost)
-                unchanged.append(f"kept {plan.name}.tar as it was: rebuilt, it would lose {len(lost)} of the clips "
-                                 f"it holds ({', '.join(f'{r}: {n}' for r, n in sorted(reasons.items()))}; e.g. "
-                                 f"{lost[0]}). --retry-failed rebuilds whole shards from --videos, which must hold "
-                                 "every clip's video, not only the late ones")
-                kept[plan.name] = before
-            else:
-                commit_shard(config, stats)
-                built.append(stats)
-            progress.set_postfix(errors=sum(len(stats["errors"]) for stats in built))
-    elapsed = time.monotonic() - started
-    for message in unchanged:
-        log(message)
-    part_stats = list(kept.values()) + built
-    total = sum(len(stats["planned"]) for stats in part_stats)
-    failed = [e for stats in part_stats for e in stats["errors"]]
-    new_frames = sum(stats["frames"] for stats in built)
-    if built:
-        log(f"built {len(built)} shards in {elapsed:.1f} s: {len(valid) / elapsed:.1f} clips/s, "
-            f"{new_frames / elapsed:.0f} frames/s")
-    log(f"part {config.part}: {total - len(failed)} clips in shards, {len(failed)} failed "
-        f"({', '.join(f'{r}: {n}' for r, n in sorted(Counter(e['reason'] for e in failed).items())) or 'none'})")
-    if by_opencv := sum(stats.get("decoded_by_opencv", 0) for stats in part_stats):  # stats of older builds: none
-        missing = importlib.util.find_spec("decord") is None
-        cause = "decord is not installed" if missing else "decord could not open them or would decode them wrong"
-        log(f"{by_opencv} of the clips in shards were decoded by OpenCV ({cause}), the rest by decord")
-    if (again := retryable(failed)) and not config.retry_failed:
-        log(f"{len(again)} of the failures may not happen again ({', '.join(sorted(set(e['reason'] for e in again)))}): "
-            "once their files are there, re-run with --retry-failed to rebuild the shards they are in")
-    manifest = assemble_manifest(config, settings, plans, digest)
-    if manifest is None:
-        log(f"other parts are not done yet: re-run any part after they finish to write {MANIFEST_FILE}")
-    else:
-        for split, counts in manifest["splits"].items():
-            log(f"{split}: {counts['clips']} clips, {counts['frames']} frames, {len(counts['shards'])} shards, "
-                f"{counts['bytes'] / 1e6:.1f} MB, {counts['errors']} errors")
-        log(f"wrote {config.out / MANIFEST_FILE} and {config.out / ERRORS_FILE}")
-    rate = len(failed) / max(total, 1)
-    if rate > config.max_error_rate:
-        where = config.out / ERRORS_FILE if manifest else "the shards' .stats.json (other parts are unfinished)"
-        log(f"error: {len(failed)} of {total} clips failed ({rate:.1%}), more than --max-error-rate "
-            f"{config.max_error_rate:g}; see {where}")
-        return manifest, 1
-    return manifest, 0
+    with part_lock(config):  # one build of a part at a time: they would write the same .partial files
+        check_settings(config.out, settings, digest, config.part)
+        log(f"shards: {len(plans)} in all, {len(mine)} in part {config.part}/{config.num_parts}, "
+            f"{len(kept)} already complete, {len(todo)} to build ({len(valid)} clips, {config.workers} workers)")
+        started = time.monotonic()
+        built, unchanged = [], []  # unchanged: a message for each shard --retry-failed left as it was
+        decode = DecodeSettings(config.size, config.resize, config.min_frames, config.encoding, config.quality)
+        with DecodePool(config.workers, decode, config.timeout) as pool, \
+                tqdm(total=len(valid), desc="build", unit="clip", disable=None) as progress:
+            results = pool.imap(config.videos / f"{record.id}.webm" for record in valid)
+            for plan in todo:
+                stats = write_shard(config, plan, results, digest, progress)
+                before = complete.get(plan.name)  # a shard that --retry-failed rebuilds must not lose a clip it holds
+                if before is not None and (lost := sorted(clips_held(before) - clips_held(stats))):
+                    discard_shard(config, stats)
+                    reasons = Counter(e["reason"] for e in stats["errors"] if e["id"] in lost)
+                    unchanged.append(f"kept {plan.name}.tar as it was: rebuilt, it would lose {len(lost)} of the clips "
+                                     f"it holds ({', '.join(f'{r}: {n}' for r, n in sorted(reasons.items()))}; e.g. "
+                                     f"{lost[0]}). --retry-failed rebuilds whole shards from --videos, which must hold "
+                                     "every clip's video, not only the late ones")
+                    kept[plan.name] = before
+                else:
+                    commit_shard(config, stats)
+                    built.append(stats)
+                progress.set_postfix(errors=sum(len(stats["errors"]) for stats in built))
+        elapsed = time.monotonic() - started
+        for message in unchanged:
+            log(message)
+        part_stats = list(kept.values()) + built
+        total = sum(len(stats["planned"]) for stats in part_stats)
+        failed = [e for stats in part_stats for e in stats["errors"]]
+        new_frames = sum(stats["frames"] for stats in built)
+        if built:
+            log(f"built {len(built)} shards in {elapsed:.1f} s: {len(valid) / elapsed:.1f} clips/s, "
+                f"{new_frames / elapsed:.0f} frames/s")
+        log(f"part {config.part}: {total - len(failed)} clips in shards, {len(failed)} failed "
+            f"({', '.join(f'{r}: {n}' for r, n in sorted(Counter(e['reason'] for e in failed).items())) or 'none'})")
+        if by_opencv := sum(stats.get("decoded_by_opencv", 0) for stats in part_stats):  # stats of older builds: none
+            missing = importlib.util.find_spec("decord") is None
+            cause = "decord is not installed" if missing else "decord could not open them or would decode them wrong"
+            log(f"{by_opencv} of the clips in shards were decoded by OpenCV ({cause}), the rest by decord")
+        if (again := retryable(failed)) and not config.retry_failed:
+            reasons = ", ".join(sorted(set(e["reason"] for e in again)))
+            log(f"{len(again)} of the failures may not happen again ({reasons}): once their files are there, re-run "
+                "with --retry-failed to rebuild the shards they are in")
+        manifest = assemble_manifest(config, settings, plans, digest)
+        if manifest is None:
+            missing = [(i, plan.name) for i, plan in enumerate(plans)
+                       if verified_stats(config.out, plan, digest, check_hash=False) is None]
+            parts = sorted({i % config.num_parts for i, _ in missing})
+            log(f"other parts are not done yet: {len(missing)} shards are missing (e.g. {missing[0][1]}.tar), which "
+                f"--part {', '.join(map(str, parts))} of --num-parts {config.num_parts} build; re-run any part after "
+                f"they finish to write {MANIFEST_FILE}")
+        else:
+            for split, counts in manifest["splits"].items():
+                log(f"{split}: {counts['clips']} clips, {counts['frames']} frames, {len(counts['shards'])} shards, "
+                    f"{counts['bytes'] / 1e6:.1f} MB, {counts['errors']} errors")
+            log(f"wrote {config.out / MANIFEST_FILE} and {config.out / ERRORS_FILE}")
+        rate = len(failed) / max(total, 1)
+        if rate > config.max_error_rate:
+            where = config.out / ERRORS_FILE if manifest else "the shards' .stats.json (other parts are unfinished)"
+            log(f"error: {len(failed)} of {total} clips failed ({rate:.1%}), more than --max-error-rate "
+                f"{config.max_error_rate:g}; see {where}")
+            return manifest, 1
+        return manifest, 0

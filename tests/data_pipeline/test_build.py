@@ -22,6 +22,7 @@ from data_pipeline.build import BuildConfig, BuildError, build, id_fault, plan_s
 from data_pipeline.sample_data import BROKEN_KINDS
 from data_pipeline.shard_format import decode_frames
 from data_pipeline.ssv2 import AnnotationError, annotation_path
+from hauwm.pid_lock import pid_lock
 
 
 def quiet(message):
@@ -261,13 +262,34 @@ def test_parts_build_the_same_shards_and_the_last_writes_the_manifest(sample_ssv
         return BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
                            splits=["train", "validation"], clips_per_shard=4, part=part, num_parts=2,
                            max_error_rate=0.0)
-    manifest, status = build(config(1), log=quiet)
+    lines = []
+    manifest, status = build(config(1), log=lines.append)
     assert manifest is None and status == 0 and not (tmp_path / "manifest.json").exists()
     assert sorted(p.name for p in tmp_path.glob("*.tar")) == ["train-000001.tar", "train-000003.tar",
                                                               "validation-000000.tar"]  # every 2nd of 6
+    assert ("other parts are not done yet: 3 shards are missing (e.g. train-000000.tar), which --part 0 of --num-parts "
+            "2 build; re-run any part after they finish to write manifest.json") in lines
     manifest, status = build(config(0), log=quiet)
     assert manifest is not None
     assert directory_bytes(tmp_path) == directory_bytes(built_shards)
+
+
+def test_a_second_build_of_a_part_while_it_runs_is_refused_and_other_parts_go_on(sample_ssv2, clean_annotations,
+                                                                                 tmp_path):
+    """Two builds of one part (a job submitted twice, a requeue) wrote the same .partial files: one failed, and the
+    other recorded a SHA-256 taken while the first still wrote the shard (`inspect --verify` then failed)."""
+    def config(part):
+        return BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
+                           splits=["train", "validation"], clips_per_shard=4, part=part, num_parts=2,
+                           max_error_rate=0.0)
+    with pid_lock(tmp_path / ".build.part-0.lock"):  # a build of part 0, as far as the lock goes
+        with pytest.raises(BuildError, match=rf"{tmp_path} is being built by another `hauwm shards build` of part 0 "
+                                             rf"\(pid {os.getpid()}\): wait for it to end, or build into another --out"):
+            build(config(0), log=quiet)
+        assert not list(tmp_path.glob("*.tar")) and not list(tmp_path.glob(".*.partial"))
+        assert build(config(1), log=quiet) == (None, 0)  # another part goes on
+    manifest, status = build(config(0), log=quiet)  # once the other build has ended
+    assert manifest is not None and status == 0 and not list(tmp_path.glob(".build.part-*.lock"))
 
 
 def test_parts_built_on_machines_without_a_shared_disk_assemble_where_their_files_are_copied(
