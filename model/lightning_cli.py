@@ -168,7 +168,11 @@ def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
 
 
 # jsonargparse's words for one setting of one type given a value of another (a union's words are longer, and said whole)
-WRONG_TYPE = re.compile(r"Parser key \"([^\"]+)\":\s*Expected a <class '(\w+)'>\. Got value: (.+)")
+# a setting of one type, or one of a few words (a Literal)
+WRONG_TYPE = re.compile(r"Parser key \"([^\"]+)\":\s*Expected a (?:<class '(\w+)'>|typing\.Literal\[(.+)\])\. "
+                        r"Got value: (.+)")
+# YAML 1.1 reads these bare words as true or false: a setting of words gets a bool
+YAML_BOOLEANS = "off, on, no, yes, false or true"
 
 
 def wrong_value(message: str, args: list[str]) -> str | None:
@@ -177,14 +181,17 @@ def wrong_value(message: str, args: list[str]) -> str | None:
     that value, where one gives it as written; None for any other message (which is then said as the parser says it)."""
     if not (match := WRONG_TYPE.fullmatch(message.strip())):
         return None
-    key, wanted, given = match.groups()
+    key, type_name, words, given = match.groups()
+    wanted = type_name or f"one of {words}"
     for flag, value in given_flags(args):  # in the order the parser reads them: it stops at the first wrong value
         if flag in ("--config", "-c") and Path(value).is_file():
             setting = read_config_file(Path(value), "")
             for part in key.split("."):
                 setting = setting.get(part) if isinstance(setting, dict) else None
             if setting is not None and str(setting) == given:
-                return f"config file {value}: {key} expects {wanted}, got {given!r}"
+                quote = f" (YAML reads a bare {YAML_BOOLEANS} as a boolean: put the word in quotes)" if \
+                    words and isinstance(setting, bool) else ""
+                return f"config file {value}: {key} expects {wanted}, got {given!r}{quote}"
         elif flag == f"--{key}" and value == given:
             return f"{flag} expects {wanted}, got {given!r}"
     return f"{key} expects {wanted}, got {given!r}"

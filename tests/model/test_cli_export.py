@@ -801,6 +801,10 @@ def test_an_export_into_something_that_is_not_a_directory_of_files_is_refused(ti
     # a value of the wrong type: the parser named the key after its whole usage text, not the file
     ("trainer:\n  max_steps: many\n", "trainer.max_steps expects int, got 'many'"),
     ("model:\n  world_model:\n    deter: wide\n", "model.world_model.deter expects int, got 'wide'"),
+    # YAML's bare `off` is false: the parser's whole usage page, naming neither the file nor the quotes
+    ("model:\n  compile: off\n", "model.compile expects one of 'auto', 'off', 'default', 'reduce-overhead', got "
+                                  "'False' (YAML reads a bare off, on, no, yes, false or true as a boolean: put the word "
+                                  "in quotes)"),
     ("model:\n  world_model: 5\n", "model.world_model is a group of settings, not 5: write them under it, e.g. "
                                     "`world_model: {cnn_width: ...}`"),  # was: "is no setting (did you mean ...?)"
 ])
@@ -821,6 +825,9 @@ def test_a_flag_of_the_wrong_type_is_named_in_one_line_and_other_parser_errors_k
     err = capsys.readouterr().err
     assert err.strip().endswith("hauwm pretrain fit: error: --trainer.max_steps expects int, got 'lots'"), err[-500:]
     assert "usage:" not in err
+    assert fit(built_shards, tmp_path, "--model.compile", "fast") == 2  # one of a few words
+    assert capsys.readouterr().err.strip().endswith(
+        "error: --model.compile expects one of 'auto', 'off', 'default', 'reduce-overhead', got 'fast'")
     assert fit(built_shards, tmp_path, "--data.pin_memory", "maybe") == 2  # a union's words are the parser's, whole
     err = capsys.readouterr().err
     assert "usage:" in err and "Does not validate against any of the Union subtypes" in err and "Given value: maybe" in err
