@@ -497,6 +497,9 @@ class PretrainCLI(LightningCLI):
         self.held.enter_context(locked(directory / FIT_LOCK, lambda pid: ConfigError(
             f"{directory} is in use by another fit (pid {pid}): wait for it to end, or give this one another "
             "--trainer.default_root_dir")))
+        if [entry.name for entry in directory.iterdir()] == [FIT_LOCK]:  # Lightning would call it "not empty"
+            warnings.filterwarnings("ignore", message=re.escape(f"Checkpoint directory {directory} exists and is not "
+                                                                "empty"))
 
 
 def not_an_advert(record: logging.LogRecord) -> bool:

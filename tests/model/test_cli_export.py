@@ -410,6 +410,13 @@ def test_a_second_fit_into_a_checkpoint_directory_in_use_is_refused(built_shards
     assert sorted(path.name for path in checkpoints.iterdir()) == ["last.ckpt"]  # the lock goes with the fit
 
 
+def test_a_fresh_fit_is_not_warned_that_its_checkpoint_directory_is_not_empty(built_shards, tmp_path, recwarn):
+    """The fit's own lock file, made first, had Lightning warn at every fresh fit that the checkpoint directory
+    "exists and is not empty", as if it were about to write over a run."""
+    assert fit(built_shards, tmp_path / "run", "--trainer.max_steps", "1") == 0
+    assert not [str(w.message) for w in recwarn if "exists and is not empty" in str(w.message)]
+
+
 def test_a_ddp_job_into_a_checkpoint_directory_in_use_is_refused(built_shards, tmp_path, capsys):
     """Its rank 0 takes the lock before it starts the other ranks: a DDP job took none, and wrote over the other fit."""
     checkpoints = tmp_path / "run" / "checkpoints"
