@@ -52,7 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.cli import at_least  # noqa: E402
-from finetune.termination import Terminated  # noqa: E402
+from hauwm.termination import Terminated  # noqa: E402
 
 TASK = "metaworld_drawer_close"  # without --from-run: Meta-World's scripted expert makes the data free
 ENV = dict(action_repeat=2, time_limit=100, fast_render=True)

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import describe_machine  # noqa: E402
 from finetune.config import load_config, parse_override  # noqa: E402
-from finetune.termination import Terminated  # noqa: E402
+from hauwm.termination import Terminated  # noqa: E402
 from finetune.train import train  # noqa: E402
 
 # small enough for a shared CPU: ~1 update/s on one loaded core

@@ -8,6 +8,7 @@ import sys
 from collections.abc import Callable
 
 from hauwm.arguments import path
+from hauwm.termination import interrupted_once, sigterm_as_interrupt, stopped_by
 
 from .decode import RESIZE_MODES
 from .shard_format import ENCODINGS, MANIFEST_FILE
@@ -45,9 +46,6 @@ def _build(args: argparse.Namespace) -> int:
     except (BuildError, AnnotationError) as error:
         print(f"hauwm shards build: {error}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("\nhauwm shards build: interrupted; run the same command again to resume", file=sys.stderr)
-        return 130
     return status
 
 
@@ -94,7 +92,7 @@ def _sample_data(args: argparse.Namespace) -> int:
     try:
         broken = make_sample_data(args.out, args.clips, with_broken=args.with_broken, seed=args.seed,
                                   workers=args.workers)
-    except BaseException:  # Ctrl-C, a full disk: what it wrote goes, so that the same command can start again
+    except BaseException:  # Ctrl-C, SIGTERM, a full disk: what it wrote goes, so that the same command can start again
         for entry in (args.out / "annotations", args.out / "videos"):  # empty or absent before (checked above)
             shutil.rmtree(entry, ignore_errors=True)
             if existed[entry]:
@@ -172,6 +170,17 @@ def parser() -> argparse.ArgumentParser:
     return root
 
 
+# what a command stopped by Ctrl-C or SIGTERM leaves, said after how it stopped
+LEFT_BEHIND = {"build": "; run the same command again to resume",
+               "sample-data": "; what it wrote was deleted: run the same command again"}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(sys.argv[1:] if argv is None else argv)
-    return args.run(args)
+    with interrupted_once(), sigterm_as_interrupt() as terminated:  # SIGTERM (scancel, timeout) as Ctrl-C
+        try:
+            return args.run(args)
+        except KeyboardInterrupt:  # after each command's own clean-up
+            stopped, status = stopped_by(terminated)
+            print(f"\nhauwm shards {args.command}: {stopped}{LEFT_BEHIND.get(args.command, '')}", file=sys.stderr)
+            return status

@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from finetune.termination import interrupted_once, sigterm_as_interrupt, stopped_by
+from hauwm.termination import interrupted_once, sigterm_as_interrupt, stopped_by
 
 # subcommand -> (paradigm, its data flag, the config setting that flag fills, help)
 SUBCOMMANDS = {
@@ -134,7 +134,7 @@ def train_command(argv: list[str], terminated: list[int]) -> int:
     from finetune.pretrained import PretrainedError
     from finetune.replay import ReplayError
     from finetune.run_dir import CHECKPOINT, saved_agents
-    from finetune.termination import Terminated
+    from hauwm.termination import Terminated
     from model.config import ConfigError
 
     subcommand = argv[0] if argv and argv[0] in SUBCOMMANDS else None
@@ -179,7 +179,7 @@ def train_command(argv: list[str], terminated: list[int]) -> int:
         return 2
     except KeyboardInterrupt:  # Ctrl-C, or SIGTERM before the run's own handling; said below, once the run's frames
         stopped, status = stopped_by(terminated)  # (and its progress bar) are gone
-    except Terminated as where:  # SIGTERM: the run wrote its checkpoint of this moment (finetune/termination.py)
+    except Terminated as where:  # SIGTERM: the run wrote its checkpoint of this moment (hauwm/termination.py)
         stopped, status = f"terminated (SIGTERM) at {where}", 143
     if stopped and cfg is None:  # while the settings were read: nothing had started
         print(f"{parser(subcommand).prog}: {stopped}, before the run started", file=sys.stderr)

@@ -27,7 +27,7 @@ from finetune.config import FinetuneConfig, FinetuneError
 from finetune.logger import Logger
 from finetune.penalty import PenalisedReward
 from finetune.run_dir import CHECKPOINT, exclusive, next_multiple, save_checkpoint
-from finetune.termination import Terminated, terminable
+from hauwm.termination import Terminated, terminable
 from finetune.train import (EVAL_SEED, LogWindow, close_window, dataset_replay, scheduled_evaluation, start_run,
                             task_env)
 from finetune.world_model import Latent
@@ -88,7 +88,7 @@ def run_offline(cfg: FinetuneConfig, pretrained: str | Path | None, progress: bo
             if updates >= counters["next_checkpoint"] or updates >= cfg.steps or stop.requested:
                 counters["next_checkpoint"] = next_multiple(updates, cfg.checkpoint_every)
                 save_checkpoint(checkpoint, agent, cfg, counters, fingerprint, rng)
-                if stop.requested:  # SIGTERM: stopped with the checkpoint of this update (finetune/termination.py)
+                if stop.requested:  # SIGTERM: stopped with the checkpoint of this update (hauwm/termination.py)
                     raise Terminated(f"update {updates}")
     bar.close()
     return last_eval

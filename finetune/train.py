@@ -34,7 +34,7 @@ from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
 from finetune.run_dir import (CHECKPOINT, Fingerprint, exclusive, keep_best, next_multiple, resume, run_fingerprint,
                               save_checkpoint)
-from finetune.termination import StopRequest, Terminated, terminable
+from hauwm.termination import StopRequest, Terminated, terminable
 from model.compiling import compile_mode
 
 ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this (env 0: the seed a single env gets)
@@ -404,7 +404,7 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
          logger: Logger, counters: dict[str, float], checkpoint: Path, fingerprint: Fingerprint, progress: bool,
          reseed: bool, stop: StopRequest) -> dict[str, float]:
     """Act in `envs` (a gymnasium vector env), store finished episodes, update, log, evaluate, checkpoint; after
-    SIGTERM (`stop`), checkpoint and raise Terminated (finetune/termination.py).
+    SIGTERM (`stop`), checkpoint and raise Terminated (hauwm/termination.py).
 
     With several envs in worker processes, the updates due run while the workers step and render; with
     one env in this process, the loop runs one env step at a time, as a single env always did. With

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from finetune.termination import interrupted_once, sigterm_as_interrupt, stopped_by
+from hauwm.termination import interrupted_once, sigterm_as_interrupt, stopped_by
 
 ENV_SETTINGS = ("fast_render", "time_limit", "action_repeat")  # what --set may change (make_env's arguments)
 

@@ -36,7 +36,7 @@ import gymnasium
 import numpy as np
 from tqdm import tqdm
 
-from finetune.termination import signals_deferred
+from hauwm.termination import signals_deferred
 from hauwm.pid_lock import lock_holder, locked
 
 IMAGE_SIZE = 64  # the frames the world model is trained on (model.networks.IMAGE_SHAPE, not imported: it imports torch)

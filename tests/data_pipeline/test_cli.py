@@ -5,7 +5,10 @@ import io
 import json
 import re
 import shutil
+import subprocess
+import sys
 import tarfile
+import time
 from pathlib import Path
 
 import cv2
@@ -240,15 +243,38 @@ def test_sample_data_stopped_midway_leaves_nothing_so_the_same_command_starts_ag
     real = sample_data._make_clip
     monkeypatch.setattr(sample_data, "_make_clip", stopped_after_two)
     out = tmp_path / "ssv2"
-    with pytest.raises(type(stop)):
-        main(["sample-data", "--out", str(out), "--clips", "3", "--workers", "1"])
+
+    def stopped_midway() -> None:  # Ctrl-C is said (exit 130), a full disk goes on to the `hauwm` dispatcher
+        if isinstance(stop, KeyboardInterrupt):
+            assert main(["sample-data", "--out", str(out), "--clips", "3", "--workers", "1"]) == 130
+        else:
+            with pytest.raises(OSError):
+                main(["sample-data", "--out", str(out), "--clips", "3", "--workers", "1"])
+
+    stopped_midway()
     assert not out.exists()  # half its videos, no annotations: "already holds a dataset" after
     (out / "videos").mkdir(parents=True)  # an empty directory of the user's stays
-    with pytest.raises(type(stop)):
-        main(["sample-data", "--out", str(out), "--clips", "3", "--workers", "1"])
+    stopped_midway()
     assert [path.name for path in out.iterdir()] == ["videos"] and not any((out / "videos").iterdir())
     monkeypatch.undo()
     assert main(["sample-data", "--out", str(out), "--clips", "3", "--workers", "1"]) == 0
+
+
+def test_sigterm_while_sample_data_writes_leaves_nothing_and_says_so(tmp_path):
+    """SIGTERM (scancel, timeout) killed it where Ctrl-C cleans up: 35 of 96 videos stayed, and the same command then
+    refused the directory as "already holding a dataset"."""
+    out = tmp_path / "ssv2"
+    command = [sys.executable, "-m", "hauwm", "shards", "sample-data", "--out", str(out), "--clips", "60",
+               "--workers", "1"]
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (out / "videos").is_dir() or len(list((out / "videos").iterdir())) < 2:
+        assert process.poll() is None and time.monotonic() < deadline, "it ended before it could be stopped"
+        time.sleep(0.01)
+    process.terminate()
+    assert process.wait(timeout=60) == 143
+    assert "hauwm shards sample-data: terminated (SIGTERM); what it wrote was deleted" in process.stderr.read()
+    assert not out.exists()
 
 
 def test_more_sample_clips_than_ids_is_refused_as_a_flag(tmp_path, capsys):

@@ -33,7 +33,7 @@ from finetune.envs import make_env
 from finetune.replay import KEYS, Replay
 from finetune.rollout import play_episode
 from finetune.run_dir import BEST, CHECKPOINT, save_checkpoint
-from finetune.termination import sigterm_as_interrupt
+from hauwm.termination import sigterm_as_interrupt
 from finetune.train import build_agent
 
 TASK = "metaworld_drawer_close"

@@ -19,7 +19,7 @@ import finetune.train
 from finetune.cli import main
 from finetune.offline import OfflineAgent, train_offline
 from finetune.run_dir import CHECKPOINT
-from finetune.termination import Terminated, interrupted_once, terminable
+from hauwm.termination import Terminated, interrupted_once, terminable
 
 from test_finetune_runs import tiny_run_settings  # noqa: I001 (tests/finetune/test_finetune_runs.py)
 from test_offline import offline_config
@@ -66,7 +66,7 @@ def test_after_a_first_ctrl_c_the_signals_that_follow_are_ignored_until_the_bloc
 def test_a_process_started_with_ctrl_c_ignored_stays_immune_to_it():
     """`hauwm datasets collect … &` in a script: POSIX starts it with SIGINT ignored, and the commands' own handler
     made a Ctrl-C meant for the script stop it."""
-    code = ("import signal\nfrom finetune.termination import interrupted_once\nwith interrupted_once():\n"
+    code = ("import signal\nfrom hauwm.termination import interrupted_once\nwith interrupted_once():\n"
             "    signal.raise_signal(signal.SIGINT)\nprint('immune')")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))

@@ -1,14 +1,17 @@
-"""SIGTERM ends a fine-tuning run after its current iteration, with a checkpoint of that moment.
+"""SIGTERM and Ctrl-C for the `hauwm` commands: a run stops after its current iteration with a checkpoint, and a
+command outside a run stops as Ctrl-C stops it, said as SIGTERM.
 
 SLURM (`scancel`, a job's time limit, preemption) and Kubernetes send SIGTERM to every process of a job, and
-SIGKILL some seconds later. A run of 1M env steps checkpoints every `checkpoint_every` steps; killed outright it
-would lose what it did since its last checkpoint. Inside `terminable()` the signal only sets a flag; the training
-loop reads it after each iteration (an env step and the updates due, or an update offline), writes its checkpoint
-and raises `Terminated`, which `hauwm finetune` reports in one line with exit status 143. The same command goes
-on from there (a checkpoint taken within an episode drops that episode's steps, as any other does). Env workers
-that the job's SIGTERM ended before the learner saw its own (`EnvWorkerError.by_sigterm`) stop the run the same
-way, with the checkpoint of the env steps completed (finetune/train.py `run`). Outside a run (while `hauwm finetune`
-starts, and in `hauwm datasets`), `sigterm_as_interrupt()` makes SIGTERM do what Ctrl-C does, said as SIGTERM (143).
+SIGKILL some seconds later. A fine-tuning run of 1M env steps checkpoints every `checkpoint_every` steps; killed
+outright it would lose what it did since its last checkpoint. Inside `terminable()` the signal only sets a flag; the
+training loop reads it after each iteration (an env step and the updates due, or an update offline), writes its
+checkpoint and raises `Terminated`, which `hauwm finetune` reports in one line with exit status 143. The same
+command goes on from there (a checkpoint taken within an episode drops that episode's steps, as any other does). Env
+workers that the job's SIGTERM ended before the learner saw its own (`EnvWorkerError.by_sigterm`) stop the run the
+same way, with the checkpoint of the env steps completed (finetune/train.py `run`). Outside a run (while `hauwm
+finetune` starts, in `hauwm datasets` and `hauwm shards`), `sigterm_as_interrupt()` makes SIGTERM do what Ctrl-C
+does — a KeyboardInterrupt, whose clean-up runs — said as SIGTERM (143). (`hauwm pretrain` has Lightning's own
+handling, model/sigterm.py.)
 """
 
 from __future__ import annotations
