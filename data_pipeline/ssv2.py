@@ -65,6 +65,9 @@ def _read_json(path: Path):
                               "last): keep one") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise AnnotationError(f"{path}: not valid JSON ({error})") from None
+    except (ValueError, RecursionError) as error:  # a number of over 4,300 digits; arrays nested thousands deep
+        raise AnnotationError(f"{path}: JSON that Python cannot read ({type(error).__name__}: "
+                              f"{str(error).split(';')[0][:120]}); SSv2's label files hold no such value") from None
     try:
         json.dumps(data, ensure_ascii=False).encode("utf-8")  # one pass over every string, at C speed
     except UnicodeEncodeError:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+MAX_SEED = 2**32 - 1  # the largest seed numpy takes (and Lightning's seed_everything, which seeds it)
 MAX_TIMEOUT = 86_400.0  # a --timeout of a day at most: a wait the OS can represent (1e300 s overflows, inf never ends)
 
 

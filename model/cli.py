@@ -56,7 +56,7 @@ def export_command(argv: list[str]) -> int:
 
 
 def analyze_command(argv: list[str]) -> int:
-    from hauwm.arguments import path
+    from hauwm.arguments import MAX_SEED, path
     from model.analyze import analyze
 
     parser = argparse.ArgumentParser(
@@ -81,6 +81,8 @@ def analyze_command(argv: list[str]) -> int:
                                ("--k-max", 1 if args.k_max is None else args.k_max, 1), ("--seed", args.seed, 0)):
         if value < least:
             parser.error(f"{flag} must be at least {least}, got {value}")
+    if args.seed > MAX_SEED:  # torch's generator overflowed, after the batches were read
+        parser.error(f"--seed must be at most {MAX_SEED}, got {args.seed}")
     refuse_other_frame_size(args.shards, "--shards")
     written = analyze(args.model, args.shards, args.out, split=args.split, batches=args.batches,
                       batch_size=args.batch_size, seq_len=args.seq_len, k_max=args.k_max, heads=args.heads, seed=args.seed,

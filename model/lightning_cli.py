@@ -36,6 +36,7 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
 from data_pipeline.datamodule import ShardDataModule
+from hauwm.arguments import MAX_SEED
 from hauwm.pid_lock import locked
 from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
 from model.cli import refuse_other_frame_size
@@ -406,6 +407,9 @@ class PretrainCLI(LightningCLI):
             subparser.error(str(err))  # what it says otherwise, with its usage
         finally:  # as Lightning expects them later (it parses a resumed checkpoint's settings, catching SystemExit)
             parser.exit_on_error, subparser.exit_on_error = before
+        seed = self.config[subcommand].get("seed_everything")
+        if type(seed) is int and not 0 <= seed <= MAX_SEED:  # Lightning's seed_everything raised it in a traceback
+            raise ConfigError(f"seed_everything {seed}: a seed is a whole number from 0 to {MAX_SEED}")
 
     def add_arguments_to_parser(self, parser) -> None:
         parser.link_arguments("data.k_max", "model.k_max")  # one K_max for sampling and validation

@@ -39,7 +39,11 @@ def annotations(tmp_path):
      r"labels.json: the key 'Pushing something from left to right' appears twice in one object"),
     ("train", '[{"id": "3", "label": "a", "template": "Pushing [something] from left to right", "template": "b"}]',
      r"train.json: the key 'template' appears twice in one object"),
-], ids=["lone-surrogate", "class-named-twice", "field-twice"])
+    # valid JSON that Python's reader refuses with a bare ValueError or RecursionError (a traceback)
+    ("train", '[{"id": ' + "9" * 5001 + ', "label": "a", "template": "Pushing [something] from left to right"}]',
+     r"train.json: JSON that Python cannot read \(ValueError: Exceeds the limit \(4300 digits\)"),
+    ("train", "[" * 100_000 + "]" * 100_000, r"train.json: JSON that Python cannot read \(RecursionError"),
+], ids=["lone-surrogate", "class-named-twice", "field-twice", "huge-number", "deep-nesting"])
 def test_text_json_takes_but_nothing_can_use_is_refused_naming_it(annotations, name, text, message):
     """A lone surrogate went into the shards (preview then died with SIGSEGV in OpenCV's putText; as an id, the build
     raised UnicodeEncodeError); of a key given twice, JSON keeps the last without a word (a class lost its clips)."""

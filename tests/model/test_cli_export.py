@@ -211,6 +211,9 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--ckpt_path", "/nonexistent/last.ckpt"], "--ckpt_path /nonexistent/last.ckpt does not exist: pass a"),
         # it trained, but a SIGTERM killed it without last.ckpt, and Ctrl-C's notice said "at step 0"
         (["--trainer.strategy", "ddp_spawn"], "--trainer.strategy ddp_spawn: ranks started by Python's multiprocessing"),
+        # Lightning's seed_everything raised numpy's ValueError in a traceback
+        (["--seed_everything", "4294967296"], "seed_everything 4294967296: a seed is a whole number from 0 to 4294967295"),
+        (["--seed_everything", "-1"], "seed_everything -1: a seed is a whole number from 0 to 4294967295"),
     ],
 )
 def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, capsys, flags, message):
@@ -694,6 +697,8 @@ def test_16_mixed_asked_on_a_cpu_trains_in_bf16_mixed_with_float32_distributions
                                                 (["--batches", "0"], "--batches must be at least 1, got 0"),
                                                 (["--k-max", "0"], "--k-max must be at least 1, got 0"),
                                                 (["--seed", "-1"], "--seed must be at least 0, got -1"),
+                                                # torch's generator overflowed (a traceback), after the batches were read
+                                                (["--seed", str(2**64)], "--seed must be at most 4294967295"),
                                                 # ran for hours in the gap tables and the per-k evaluation
                                                 (["--k-max", "10000000"], "--k-max 10000000 with sequences of 12 "
                                                  "frames: the longest clip has"),
