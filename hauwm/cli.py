@@ -47,7 +47,7 @@ FULL = (errno.ENOSPC, errno.EDQUOT)  # a full disk, or the user's disk quota rea
 
 # what running a stage's command again does, after a full disk stopped it
 AGAIN = {
-    "pretrain": " (a fit goes on from its last checkpoint with --ckpt_path last)",
+    "pretrain": " (a fit goes on from its last checkpoint with --ckpt_path last; an export or analysis starts anew)",
     "finetune": " (a run goes on from its last checkpoint)",
     "shards": " (a build keeps the shards it finished)",
 }

@@ -105,6 +105,9 @@ def read_config(export_dir: str | Path) -> dict[str, Any]:
     """config.json of an export in the version-2 layout (a version-1 file's flat keys moved under
     "world_model"; "schema_version" stays the file's), with its version and world_model checked."""
     path = Path(export_dir) / CONFIG_FILE
+    if Path(export_dir).is_file() and Path(export_dir).suffix == ".ckpt":  # the fit's checkpoint, given as the export
+        raise ExportError(f"{export_dir} is a checkpoint of `hauwm pretrain fit`, not an export: make one with "
+                          f"`hauwm pretrain export {export_dir} --out DIR` and pass DIR")
     if Path(export_dir).is_file():
         raise ExportError(f"{export_dir} is a file: an export is the directory that holds {CONFIG_FILE} and "
                           f"{WEIGHTS_FILE} (e.g. {Path(export_dir).parent})")

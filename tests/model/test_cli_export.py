@@ -98,6 +98,10 @@ def test_export_errors_are_clear(tiny_export, tmp_path):
     with pytest.raises(ExportError, match=rf"config.json is a file: an export is the directory .* \(e.g. "
                                           rf"{re.escape(str(tiny_export))}\)"):  # ".../config.json/config.json not found"
         load_frozen(tiny_export / "config.json")
+    (tmp_path / "last.ckpt").write_bytes(b"a checkpoint")  # was told to pass its directory, RUN/checkpoints
+    with pytest.raises(ExportError, match=rf"{re.escape(str(tmp_path / 'last.ckpt'))} is a checkpoint of `hauwm "
+                                          r"pretrain fit`, not an export: make one with `hauwm pretrain export"):
+        load_frozen(tmp_path / "last.ckpt")
     wrong_version = tmp_path / "v2"
     shutil.copytree(tiny_export, wrong_version)
     config = json.loads((wrong_version / "config.json").read_text())
