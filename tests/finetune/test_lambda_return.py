@@ -1,6 +1,8 @@
-"""The λ-return (finetune.behavior.lambda_return) on hand-worked examples."""
+"""The λ-return (finetune.behavior.lambda_return) on hand-worked examples, and the actor-critic losses built on it."""
 
 from __future__ import annotations
+
+import functools
 
 import torch
 
@@ -9,6 +11,19 @@ from finetune.behavior import ActorCritic, lambda_return
 # one trajectory of H = 3 steps: rewards r_1..r_3 and values v(z_0)..v(z_3)
 REWARDS = torch.tensor([[1.0], [2.0], [3.0]])
 VALUES = torch.tensor([[10.0], [20.0], [30.0], [40.0]])
+
+
+def reward_first_action(start, policy, horizon, moves=False):
+    """A toy model to imagine in: the reward is the action's first component; z stays put, or moves by the sum of
+    the action's components (`moves`)."""
+    feats, rewards, entropies = [start], [], []
+    for _ in range(horizon):
+        dist = policy(feats[-1].detach())
+        action = dist.rsample()
+        entropies.append(dist.entropy())
+        rewards.append(action[:, 0])
+        feats.append(feats[-1] + action.sum(-1, keepdim=True) if moves else feats[-1])
+    return torch.stack(feats), torch.stack(rewards), torch.stack(entropies)
 
 
 def test_lambda_zero_is_the_one_step_target():
@@ -49,20 +64,10 @@ def test_actor_update_moves_actions_towards_imagined_reward():
     learner = ActorCritic(feat_dim=4, action_dim=2, units=32, horizon=3, actor_lr=1e-2, critic_lr=1e-2)
     start = torch.randn(64, 4)
 
-    def imagine(start, policy, horizon):  # toy model: z stays put, reward = first action component
-        feats, rewards, entropies = [start], [], []
-        for _ in range(horizon):
-            dist = policy(feats[-1].detach())
-            action = dist.rsample()
-            entropies.append(dist.entropy())
-            rewards.append(action[:, 0])
-            feats.append(feats[-1])
-        return torch.stack(feats), torch.stack(rewards), torch.stack(entropies)
-
     mean_action = lambda: learner.actor(start).mode[:, 0].mean().item()  # noqa: E731
     before = mean_action()
     for _ in range(30):
-        metrics = learner.step(*learner.losses(imagine, start))
+        metrics = learner.step(*learner.losses(reward_first_action, start))
     assert mean_action() > before + 0.2
     assert set(metrics) >= {"actor_loss", "critic_loss", "imagined_return"}
 
@@ -78,10 +83,10 @@ def test_actor_saturation_is_reported():
         dists = [policy(f) for f in feats[:-1]]
         return torch.stack(feats), torch.zeros(horizon, len(start)), torch.stack([d.entropy() for d in dists])
 
-    assert learner.step(*learner.losses(imagine, start))["actor_saturated"] == 0.0  # at init tanh μ is near 0
+    assert learner.step(*learner.losses(reward_first_action, start))["actor_saturated"] == 0.0  # at init tanh μ is near 0
     with torch.no_grad():
         learner.actor.net[-1].bias[0] = 20.0  # μ ≈ 20 on every state: tanh' ≈ 1e-17
-    assert learner.step(*learner.losses(imagine, start))["actor_saturated"] == 1.0
+    assert learner.step(*learner.losses(reward_first_action, start))["actor_saturated"] == 1.0
 
 
 def test_the_losses_are_the_documented_formulas_and_the_target_follows_the_critic():
@@ -118,17 +123,8 @@ def test_each_loss_trains_only_its_own_network():
     torch.manual_seed(0)
     learner = ActorCritic(feat_dim=4, action_dim=2, units=8, horizon=3)
 
-    def imagine(start, policy, horizon):  # z moves with the action, reward = first action component
-        feats, rewards, entropies = [start], [], []
-        for _ in range(horizon):
-            dist = policy(feats[-1].detach())
-            action = dist.rsample()
-            entropies.append(dist.entropy())
-            rewards.append(action[:, 0])
-            feats.append(feats[-1] + action.sum(-1, keepdim=True))
-        return torch.stack(feats), torch.stack(rewards), torch.stack(entropies)
-
-    actor_loss, critic_loss, _, _ = learner.losses(imagine, torch.randn(16, 4))
+    moving = functools.partial(reward_first_action, moves=True)  # z moves with the actions
+    actor_loss, critic_loss, _, _ = learner.losses(moving, torch.randn(16, 4))
     actor, critic = list(learner.actor.parameters()), list(learner.critic.parameters())
     assert all(grad is None for grad in torch.autograd.grad(critic_loss, actor, retain_graph=True, allow_unused=True))
     assert all(grad is None for grad in torch.autograd.grad(actor_loss, critic, retain_graph=True, allow_unused=True))
