@@ -1,5 +1,6 @@
 """Test callbacks for the DDP tests: each rank writes how many steps it took, the broadcasts it made while training
-and a hash of its final weights; each rank sends itself SIGTERM, at a different point of the same step."""
+and a hash of its final weights; each rank sends itself SIGTERM, at a different point of the same step. And a rank's
+body for torch.multiprocessing.spawn (importable by name in the processes it starts, as a test module is not)."""
 
 from __future__ import annotations
 
@@ -72,3 +73,16 @@ class LoaderFailsOnRankOne(L.Callback):
             from data_pipeline.dataset import LoaderError
 
             raise LoaderError("shard train-000001.tar of rank 1 is damaged (a test's)")
+
+
+def mean_of_two_ranks(rank: int, port: int, out: Path) -> None:
+    """Rank `rank` of a 2-process gloo group: write mean_over_ranks of its value, rank + 1."""
+    import torch.distributed as dist
+
+    from model.module import mean_over_ranks
+
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
+    try:
+        (out / f"rank{rank}").write_text(str(mean_over_ranks(torch.tensor(rank + 1.0)).item()))
+    finally:
+        dist.destroy_process_group()

@@ -19,6 +19,7 @@ from hauwm.pid_lock import pid_lock
 from model.config import WorldModelConfig
 from model.module import PretrainModule
 
+import rank_report  # noqa: I001 (tests/model/rank_report.py)
 from conftest import REPO, TINY_CONFIG  # noqa: I001 (tests/model/conftest.py)
 
 
@@ -105,22 +106,9 @@ def test_a_rank_that_fails_stops_the_job_with_one_line_from_each_rank(built_shar
     assert "Traceback" not in done.stderr, done.stderr[-3000:]
 
 
-def _mean_of_two_ranks(rank: int, port: int, out: Path) -> None:
-    """Rank `rank` of a 2-process gloo group: write mean_over_ranks of its value, rank + 1."""
-    import torch.distributed as dist
-
-    from model.module import mean_over_ranks
-
-    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
-    try:
-        (out / f"rank{rank}").write_text(str(mean_over_ranks(torch.tensor(rank + 1.0)).item()))
-    finally:
-        dist.destroy_process_group()
-
-
 def test_lambdas_constraint_is_the_mean_over_ranks_not_their_sum(tmp_path):
     """The 2-rank fits above end with the same λ on both ranks, which the constraint's sum over ranks gives too."""
-    torch.multiprocessing.spawn(_mean_of_two_ranks, args=(free_port(), tmp_path), nprocs=2)
+    torch.multiprocessing.spawn(rank_report.mean_of_two_ranks, args=(free_port(), tmp_path), nprocs=2)
     assert [float((tmp_path / f"rank{rank}").read_text()) for rank in (0, 1)] == [1.5, 1.5]
 
 

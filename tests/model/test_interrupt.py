@@ -223,7 +223,8 @@ def test_a_checkpoint_write_stopped_by_a_full_disk_says_so_in_one_line(tmp_path,
     assert main(["pretrain", "fit"]) == 2
     assert capsys.readouterr().err.strip() == (f"hauwm pretrain: error: no space left on the device while writing {path}: "
                                                "free some space, then run the same command again (a fit goes on from "
-                                               "its last checkpoint with --ckpt_path last)")
+                                               "its last checkpoint with --ckpt_path last; an export or analysis "
+                                               "starts anew)")
 
 
 def test_a_checkpoint_write_stopped_by_ctrl_c_leaves_the_old_one_and_nothing_beside_it(tmp_path, monkeypatch):
