@@ -280,11 +280,8 @@ def discard_shard(config: BuildConfig, stats: dict) -> None:
     partial_tar(config.out, stats["name"]).unlink()
 
 
-def assemble_manifest(config: BuildConfig, settings: dict, plans: list[ShardPlan], digest: str) -> dict | None:
-    """Write errors.jsonl and manifest.json once every shard of every part is present; else None."""
-    all_stats = [verified_stats(config.out, plan, digest, check_hash=False) for plan in plans]
-    if any(stats is None for stats in all_stats):
-        return None
+def assemble_manifest(config: BuildConfig, settings: dict, all_stats: list[dict]) -> dict:
+    """Write errors.jsonl and manifest.json from the stats of every shard of every part."""
     splits: dict[str, dict] = {}
     errors = []
     for stats in all_stats:
@@ -401,12 +398,12 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
             reasons = ", ".join(sorted(set(e["reason"] for e in again)))
             log(f"{len(again)} of the failures may not happen again ({reasons}): once their files are there, re-run "
                 "with --retry-failed to rebuild the shards they are in")
-        manifest = assemble_manifest(config, settings, plans, digest)
-        if manifest is None:
-            missing = [(i, plan.name) for i, plan in enumerate(plans)
-                       if verified_stats(config.out, plan, digest, check_hash=False) is None]
-            parts = sorted({i % config.num_parts for i, _ in missing})
-            log(f"other parts are not done yet: {len(missing)} shards are missing (e.g. {missing[0][1]}.tar), which "
+        all_stats = [verified_stats(config.out, plan, digest, check_hash=False) for plan in plans]  # every part's
+        absent = [(i, plan.name) for i, (plan, stats) in enumerate(zip(plans, all_stats)) if stats is None]
+        manifest = None if absent else assemble_manifest(config, settings, all_stats)
+        if absent:
+            parts = sorted({i % config.num_parts for i, _ in absent})
+            log(f"other parts are not done yet: {len(absent)} shards are missing (e.g. {absent[0][1]}.tar), which "
                 f"--part {', '.join(map(str, parts))} of --num-parts {config.num_parts} build; re-run any part after "
                 f"they finish to write {MANIFEST_FILE}")
         else:

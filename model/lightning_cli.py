@@ -168,8 +168,8 @@ def refuse_bad_configs(args: list[str], names: set[str], command: str) -> None:
                               + f"; `{command} --help` lists them")
 
 
-# jsonargparse's words for one setting of one type given a value of another (a union's words are longer, and said whole)
-# a setting of one type, or one of a few words (a Literal)
+# jsonargparse's words for a setting of one type, or of a few words (a Literal), given a value of another (a union's
+# words are longer, and said whole)
 WRONG_TYPE = re.compile(r"Parser key \"([^\"]+)\":\s*Expected a (?:<class '(\w+)'>|typing\.Literal\[(.+)\])\. "
                         r"Got value: (.+)")
 # YAML 1.1 reads these bare words as true or false: a setting of words gets a bool

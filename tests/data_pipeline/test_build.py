@@ -2,6 +2,7 @@
 
 import contextlib
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -256,12 +257,15 @@ def test_changed_settings_are_refused(sample_ssv2, clean_annotations, tmp_path):
     assert "Traceback" not in refused.stderr
 
 
+def two_parts(sample_ssv2, annotations, out: Path, part: int) -> BuildConfig:
+    """Part `part` of a build of train and validation in two parts, 4 clips a shard."""
+    return BuildConfig(annotations=annotations, videos=sample_ssv2 / "videos", out=out, splits=["train", "validation"],
+                       clips_per_shard=4, part=part, num_parts=2, max_error_rate=0.0)
+
+
 def test_parts_build_the_same_shards_and_the_last_writes_the_manifest(sample_ssv2, clean_annotations, built_shards,
                                                                       tmp_path):
-    def config(part):
-        return BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
-                           splits=["train", "validation"], clips_per_shard=4, part=part, num_parts=2,
-                           max_error_rate=0.0)
+    config = functools.partial(two_parts, sample_ssv2, clean_annotations, tmp_path)  # config(part)
     lines = []
     manifest, status = build(config(1), log=lines.append)
     assert manifest is None and status == 0 and not (tmp_path / "manifest.json").exists()
@@ -278,10 +282,7 @@ def test_a_second_build_of_a_part_while_it_runs_is_refused_and_other_parts_go_on
                                                                                  tmp_path):
     """Two builds of one part (a job submitted twice, a requeue) wrote the same .partial files: one failed, and the
     other recorded a SHA-256 taken while the first still wrote the shard (`inspect --verify` then failed)."""
-    def config(part):
-        return BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path,
-                           splits=["train", "validation"], clips_per_shard=4, part=part, num_parts=2,
-                           max_error_rate=0.0)
+    config = functools.partial(two_parts, sample_ssv2, clean_annotations, tmp_path)  # config(part)
     with pid_lock(tmp_path / ".build.part-0.lock"):  # a build of part 0, as far as the lock goes
         with pytest.raises(BuildError, match=rf"{tmp_path} is being built by another `hauwm shards build` of part 0 "
                                              rf"\(pid {os.getpid()}\): wait for it to end, or build into another --out"):

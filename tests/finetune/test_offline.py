@@ -181,6 +181,15 @@ def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_con
         train_offline(offline_config(tiny_config, tmp_path / "d", 2, replay_capacity=20), export_dir, progress=False)
 
 
+def posterior_starts(agent):
+    """The posterior states [2, 4, ·] of two random sequences of 4 frames and 2-dim actions, to imagine from (no
+    gradient reaches them, as none reaches an agent's imagination starts)."""
+    generator = np.random.default_rng(0)
+    with torch.no_grad():
+        return agent.world_model.observe(torch.as_tensor(generator.integers(0, 256, (2, 4, 3, 64, 64), dtype=np.uint8)),
+                                         torch.as_tensor(generator.uniform(-1, 1, (2, 4, 2)).astype(np.float32)))[0]
+
+
 def test_the_rollout_given_to_the_penalty_holds_the_sampled_states_and_the_heads_that_drew_them(export_dir,
                                                                                                    tiny_config):
     """u is computed on what `imagine` hands the reward function: each step's sampled s̃_{t+1} (the one the features
@@ -192,11 +201,8 @@ def test_the_rollout_given_to_the_penalty_holds_the_sampled_states_and_the_heads
 
     cfg = tiny_config(paradigm="offline", model_heads=3, horizon=3)
     agent = build_agent(cfg, 2, export_dir, torch.device("cpu"), OfflineAgent)
-    generator = np.random.default_rng(0)
+    start = posterior_starts(agent)
     with torch.no_grad():
-        start, _ = agent.world_model.observe(
-            torch.as_tensor(generator.integers(0, 256, (2, 4, 3, 64, 64), dtype=np.uint8)),
-            torch.as_tensor(generator.uniform(-1, 1, (2, 4, 2)).astype(np.float32)))
         handed = []
 
         def recording(rollout):  # a reward function that keeps what it is given
@@ -224,10 +230,7 @@ def test_the_frozen_disagreement_term_gives_the_actor_no_gradient(export_dir, ti
 
     cfg = tiny_config(paradigm="offline", model_heads=3, horizon=3, penalty_frozen_weight=10.0)
     agent = build_agent(cfg, 2, export_dir, torch.device("cpu"), OfflineAgent)
-    generator = np.random.default_rng(0)
-    start, _ = agent.world_model.observe(torch.as_tensor(generator.integers(0, 256, (2, 4, 3, 64, 64), dtype=np.uint8)),
-                                         torch.as_tensor(generator.uniform(-1, 1, (2, 4, 2)).astype(np.float32)))
-    start = type(start)(*(type(s)(s.deter.detach(), s.stoch.detach()) for s in start))
+    start = posterior_starts(agent)
     results = []
     for weight in (0.0, 10.0):
         agent.penalty.frozen_weight = weight

@@ -15,6 +15,8 @@ from model.networks import preprocess
 from model.rssm import RSSMState
 from model.world_model import WorldModel
 
+from conftest import make_batch  # noqa: I001 (tests/model/conftest.py)
+
 
 @torch.no_grad()
 def test_horizon_sums_are_one_jump_predictions_over_each_frames_own_gap():
@@ -66,8 +68,6 @@ def test_analyze_rolls_each_head_out_from_the_last_observed_state_with_the_clips
     from model.analyze import rollout, seeded_noise
     from model.export import export_frozen, load_frozen
 
-    from conftest import make_batch  # noqa: I001 (tests/model/conftest.py)
-
     torch.manual_seed(0)
     model = load_frozen(export_frozen(WorldModel(small_sizes), tmp_path, {"source": "tests"}))
     batch = make_batch(batch_size=2, length=8, seed=3)
@@ -92,8 +92,6 @@ def test_analyzes_horizon_figures_sum_every_batch_with_its_own_seeded_noise(smal
     """The same seed gives the same figures (noise drawn from the global RNG would not), and batch i's noise comes
     from seed + i."""
     from model.analyze import horizon_figure_data, seeded_noise
-
-    from conftest import make_batch  # noqa: I001 (tests/model/conftest.py)
 
     torch.manual_seed(0)
     model = WorldModel(small_sizes).eval()

@@ -20,6 +20,12 @@ from model.config import ConfigError
 from model.module import PretrainModule
 
 
+def quiet_trainer(**settings) -> L.Trainer:
+    """A CPU Trainer that writes and prints nothing of its own (no logger, checkpoint, bar or summary)."""
+    return L.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                     enable_model_summary=False, **settings)
+
+
 def test_lambda_grows_while_the_ensemble_is_too_certain_and_shrinks_once_it_is_not(small_sizes):
     module = PretrainModule(small_sizes, hcu_target=1.0, lambda_init=1.0, lambda_lr=0.05)
     _, dual = module.configure_optimizers()
@@ -146,8 +152,7 @@ def test_the_dual_step_follows_the_k_scaled_disagreement_of_the_batch(small_size
     monkeypatch.setattr(torch.optim.Adam, "step", lambda self, *a, **k: gradients.append(
         [p.grad.clone() for group in self.param_groups for p in group["params"] if p.grad is not None]))
     batch = batch_factory(seed=3)
-    trainer = L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False)
+    trainer = quiet_trainer(max_steps=1)
     trainer.fit(module, DataLoader([batch], batch_size=None))
     noise = module.noise(batch["gaps"], 0, stream=0)
     obs = module.world_model.observe(batch["frames"], batch["gaps"], batch["num_frames"], noise)  # the same step
@@ -198,8 +203,7 @@ def test_a_checkpoint_of_another_size_is_refused(small_sizes):
 
 def test_a_checkpoint_keeps_the_sizes_as_plain_data_and_loads_back(small_sizes, batch_factory, tmp_path):
     module = PretrainModule(small_sizes, lr=1e-3)
-    trainer = L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False)
+    trainer = quiet_trainer(max_steps=1)
     trainer.fit(module, DataLoader([batch_factory()], batch_size=None))
     trainer.save_checkpoint(tmp_path / "step1.ckpt")
     saved = torch.load(tmp_path / "step1.ckpt", weights_only=True)["hyper_parameters"]
@@ -253,9 +257,7 @@ def fit_poisoned(sizes: WorldModelConfig, batches: list[dict], precision: MixedP
     torch.manual_seed(0)
     module = PoisonedStep(sizes)
     snapshots = Snapshots()
-    trainer = L.Trainer(max_steps=len(batches), accelerator="cpu", plugins=precision and [precision], logger=False,
-                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
-                        callbacks=[snapshots])
+    trainer = quiet_trainer(max_steps=len(batches), plugins=precision and [precision], callbacks=[snapshots])
     trainer.fit(module, DataLoader(batches, batch_size=None))
     assert trainer.global_step == len(batches)
     states = snapshots.states
@@ -289,8 +291,7 @@ def test_a_training_step_clips_the_gradient_adam_steps_with(small_sizes, batch_f
 
     monkeypatch.setattr(torch.optim.Adam, "step", record)
     module = PretrainModule(small_sizes, grad_clip=1e-3)
-    trainer = L.Trainer(max_steps=2, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False)
+    trainer = quiet_trainer(max_steps=2)
     trainer.fit(module, DataLoader([batch_factory(seed=0), batch_factory(seed=1)], batch_size=None))
     assert norms == [pytest.approx(1e-3, rel=1e-3)] * 2  # the unclipped norm is orders of magnitude larger
 
@@ -300,8 +301,7 @@ def test_validation_logs_each_gaps_error_and_disagreement_summed_over_its_batche
     (each with its own noise), each under its own name."""
     module = PretrainModule(small_sizes, k_max=5)
     batches = [batch_factory(seed=i) for i in range(2)]
-    trainer = L.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False)
+    trainer = quiet_trainer()
     logged = trainer.validate(module, DataLoader(batches, batch_size=None), verbose=False)[0]
     with torch.no_grad():
         sums = sum(horizon_sums(module.world_model, batch, 5, module.noise(batch["gaps"], i, stream=1))[0]

@@ -61,8 +61,8 @@ def test_the_transition_is_a_gru_of_the_previous_state_and_the_condition():
     h_r, h_z, h_n = (prev.deter @ cell.weight_hh.T + cell.bias_hh).chunk(3, -1)
     reset, update = torch.sigmoid(x_r + h_r), torch.sigmoid(x_z + h_z)
     candidate = torch.tanh(x_n + reset * h_n)
-    torch.testing.assert_close(rssm.transition(prev, cond), (1 - update) * candidate + update * prev.deter)
     deter = rssm.transition(prev, cond)
+    torch.testing.assert_close(deter, (1 - update) * candidate + update * prev.deter)
     for changed in (RSSMState(prev.deter, prev.stoch + 1), RSSMState(prev.deter + 1, prev.stoch)):
         assert not torch.allclose(rssm.transition(changed, cond), deter)
     assert not torch.allclose(rssm.transition(prev, cond + 1), deter)
