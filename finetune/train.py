@@ -34,8 +34,11 @@ from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
 from finetune.run_dir import (CHECKPOINT, Fingerprint, exclusive, keep_best, next_multiple, resume, run_fingerprint,
                               save_checkpoint)
+from hauwm.memory import PARAMETER_BYTES, beyond_memory, parameter_count
 from hauwm.termination import StopRequest, Terminated, terminable
 from model.compiling import compile_mode
+from model.config import WorldModelConfig
+from model.networks import IMAGE_SHAPE, Encoder
 
 ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this (env 0: the seed a single env gets)
 EVAL_SEED = 10_000  # a run's evaluation env plays from seed + this (+ the step of a reseeded evaluation)
@@ -311,6 +314,32 @@ def incomparable_returns_note(cfg: FinetuneConfig) -> str | None:
             "of whole episodes)")
 
 
+def refuse_beyond_memory(cfg: FinetuneConfig, agent_class: type[Agent], action_dim: int, device: torch.device) -> None:
+    """Refuse a run that cannot fit in this machine's memory (hauwm/memory.py): the agent's trained parameters (float32
+    weights, gradients and Adam state on a CPU; the weights, while they are built, for a GPU) and, where the run collects
+    episodes, its replay at its fullest: min(replay_capacity, the run's agent steps) frames with their actions and
+    rewards. A dataset the run trains on is loaded before: the memory available is what it left."""
+    # built without the export: the scratch agent's parts, its new stream of the paper's deter and stoch where they follow
+    # the export's (a few MB more than a small export's), less the encoder the hauwm agent takes from the export
+    agent = parameter_count(lambda: agent_class(cfg, action_dim))
+    frozen = parameter_count(lambda: Encoder(cfg.encoder_width, 32 * cfg.encoder_width)) if cfg.agent == "hauwm" else 0
+    if device.type == "cpu":
+        needs = {"the agent's weights, gradients and Adam state": 4 * PARAMETER_BYTES * (agent - frozen)}
+    else:
+        needs = {"the agent's weights, built on the host": PARAMETER_BYTES * (agent - frozen)}
+    if cfg.paradigm != "offline":
+        steps = min(cfg.replay_capacity, math.ceil(cfg.steps / cfg.action_repeat))
+        needs[f"the replay of {steps} steps"] = steps * (math.prod(IMAGE_SHAPE) + 4 * (action_dim + 1))
+    defaults = {"units": FinetuneConfig.units, "hidden": FinetuneConfig.hidden, "model_heads": FinetuneConfig.model_heads,
+             "encoder_width": FinetuneConfig.encoder_width, "deter": WorldModelConfig.deter, "stoch": WorldModelConfig.stoch}
+    larger = [f"{name} {getattr(cfg, name)}" for name, size in defaults.items() if (getattr(cfg, name) or 0) > size]
+    replay_first = max(needs, key=needs.get).startswith("the replay")
+    fix = ("lower replay_capacity (the replay then keeps the newest steps that fit)" if replay_first else
+           f"lower the agent's sizes{' (' + ', '.join(larger) + ')' if larger else ''}")
+    if problem := beyond_memory(needs, fix):
+        raise FinetuneError(problem)
+
+
 def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: type[Agent], action_dim: int,
               counters: dict[str, float], rng: np.random.Generator) -> tuple[Agent, Fingerprint, dict[str, float]]:
     """The start every paradigm shares: torch's threads and seed, the agent, and the run directory's checkpoint
@@ -328,6 +357,7 @@ def start_run(cfg: FinetuneConfig, pretrained: str | Path | None, agent_class: t
               "(its simulator and renderer, about 100 MB), and envs beyond the CPUs step no faster", file=sys.stderr)
     if note := incomparable_returns_note(cfg):
         print(note, file=sys.stderr)
+    refuse_beyond_memory(cfg, agent_class, action_dim, device)
     torch.manual_seed(cfg.seed)
     agent = build_agent(cfg, action_dim, pretrained, device, agent_class)
     fingerprint = run_fingerprint(cfg, pretrained)

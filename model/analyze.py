@@ -24,6 +24,7 @@ from tqdm import tqdm
 from data_pipeline.dataset import SequenceDataset, shard_set
 from data_pipeline.sampling import gap_range_note, gaps_beyond_clips
 from hauwm.atomic import written_whole
+from hauwm.memory import memory_available
 from model.config import ConfigError
 from model.evaluation import horizon_metrics, horizon_sums
 from model.export import FrozenWorldModel, load_frozen
@@ -164,17 +165,6 @@ def check_memory(batches: int, batch_size: int, seq_len: int) -> None:
         raise ConfigError(f"--batches {batches} × --batch-size {batch_size} × --seq-len {seq_len} frames take "
                           f"{needed / 2**30:.1f} GiB, more than half the {available / 2**30:.1f} GiB of memory "
                           "available: lower --batches or --batch-size")
-
-
-def memory_available() -> int | None:
-    """Bytes of memory available to new allocations (Linux's MemAvailable), None where /proc/meminfo has none."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
 
 
 def analyze(

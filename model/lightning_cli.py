@@ -37,6 +37,7 @@ from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
 from data_pipeline.datamodule import ShardDataModule
 from hauwm.arguments import MAX_SEED
+from hauwm.memory import PARAMETER_BYTES, beyond_memory, parameter_count, training_memory
 from hauwm.pid_lock import locked
 from model.checkpointing import AtomicCheckpointIO, LastStepCheckpoint
 from model.cli import refuse_other_frame_size
@@ -46,6 +47,9 @@ from model.interrupt import FitInterrupted, ResumeNotice
 from model.module import PretrainModule, refuse_other_size
 from model.progress import StepProgressBar
 from model.sigterm import AgreedSigterm
+from model.networks import IMAGE_SHAPE
+from model.rssm import RSSMState
+from model.world_model import WorldModel
 
 PRECISIONS = ("32-true", "32", "16-mixed", "16", "bf16-mixed", "bf16")  # each with Lightning's other name for it
 DATA_STREAM = ("train_split", "batch_size", "seq_len", "shuffle_buffer", "seed")  # the data settings that shape the
@@ -346,6 +350,35 @@ def settle_trainer(trainer, subcommand: str, resuming: bool) -> None:
         trainer.precision = "bf16-mixed"
 
 
+def refuse_beyond_memory(config) -> None:
+    """Refuse a fit whose world model (config.model.world_model) cannot fit in this machine's memory: on a
+    CPU, its training at config.data's batch size and sequence length (weights, Adam state, activations); for a GPU,
+    its weights while they are built on the host (hauwm/memory.py; a GPU's own memory running out is one line of
+    `hauwm`'s)."""
+    world_model = WorldModelConfig(**config.model.world_model.as_dict()).validate()  # named as the module names it
+    accelerator, batch_size, seq_len = config.trainer.accelerator, config.data.batch_size, config.data.seq_len
+
+    def forward() -> WorldModel:  # one training batch through the model, on fake tensors
+        model = WorldModel(world_model)
+        with torch.autocast("cpu", torch.bfloat16, enabled="16" in str(config.trainer.precision)):
+            obs = model.observe(torch.zeros(batch_size, seq_len, *IMAGE_SHAPE, dtype=torch.uint8),
+                                torch.ones(batch_size, seq_len, dtype=torch.long), torch.full((batch_size,), seq_len))
+            model.decode(RSSMState(obs.deter, obs.stoch))
+        return model
+
+    if accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available()):
+        needs = training_memory(forward)
+    else:
+        needs = {"weights built on the host": PARAMETER_BYTES * parameter_count(lambda: WorldModel(world_model))}
+    paper = WorldModelConfig()
+    larger = [f"{name} {value}" for name, value in world_model.to_dict().items()
+              if type(value) is int and value > getattr(paper, name)]
+    fix = (f"lower model.world_model's sizes ({', '.join(larger)}; the paper's are in configs/pretrain/ssv2.yaml)"
+           if larger else "lower --data.batch_size or --data.seq_len")
+    if problem := beyond_memory(needs, fix):
+        raise ConfigError(f"model.world_model at batch_size {batch_size} × seq_len {seq_len}: {problem}")
+
+
 def refuse_nodes_without_a_cluster(trainer) -> None:
     """Several nodes and no SLURM, torchrun or MASTER_ADDR: rank 0 waited at 127.0.0.1, without a word, for nodes
     that could not reach it."""
@@ -455,6 +488,8 @@ class PretrainCLI(LightningCLI):
             print("hauwm pretrain validate: no --ckpt_path, so this scores a freshly initialised model", file=sys.stderr)
         if self.subcommand == "validate":  # settle_trainer leaves the checkpoint callbacks out, on purpose
             warnings.filterwarnings("ignore", message="Be aware that when using `ckpt_path`, callbacks used to create")
+        if self.subcommand == "fit":
+            refuse_beyond_memory(config)
         settle_trainer(config.trainer, self.subcommand, resuming=bool(config.ckpt_path))
 
     def before_validate(self) -> None:

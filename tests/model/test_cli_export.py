@@ -235,6 +235,17 @@ def test_shared_memory_too_small_for_the_loader_is_refused_in_one_line(built_sha
     assert not (tmp_path / "checkpoints").exists()
 
 
+def test_a_world_model_too_large_for_the_memory_is_refused_before_it_is_built(built_shards, tmp_path, capsys,
+                                                                              monkeypatch):
+    monkeypatch.setattr("hauwm.memory.memory_available", lambda: 2**30)  # the kernel's OOM killer ended it (exit 137)
+    assert fit(built_shards, tmp_path, "--model.world_model.ensemble", "20000", "--trainer.max_steps", "1") == 2
+    err = capsys.readouterr().err
+    assert "more than the 1.0 GiB available: lower model.world_model's sizes (ensemble 20000;" in err
+    assert "batch_size 3 × seq_len 8" in err and "Traceback" not in err
+    assert not (tmp_path / "checkpoints").exists() and not (tmp_path / "lightning_logs").exists()
+    assert fit(built_shards, tmp_path, "--trainer.max_steps", "1") == 0  # tiny.yaml's sizes fit in it
+
+
 def test_no_shard_directory_and_an_optimizer_flag_are_refused_in_one_line(capsys):
     assert main(["fit", "--config", str(TINY_CONFIG)]) == 2  # every config leaves data.shards to the command line
     err = capsys.readouterr().err

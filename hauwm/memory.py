@@ -1,0 +1,78 @@
+"""What a run will hold in host memory, checked against what the machine has before the run starts.
+
+A size that cannot fit (a world model of `ensemble: 100000`, an actor of `units: 100000`, a replay of 10^7 frames on a
+laptop) is refused in one line naming its settings, instead of being ended by the kernel's OOM killer (exit 137, no
+message of ours) while it builds, or hours in. Every stage states its needs as named byte counts:
+
+    problem = beyond_memory({"the world model's weights, gradients and Adam state": 87 * 2**30}, "lower …")
+    if problem:
+        raise ConfigError(problem)
+
+The counts are estimates from below (parameters, the activations a forward pass keeps for its backward pass, frames;
+not the interpreter, not the libraries), so a run that is refused could not have finished; one that is not refused may
+still need more.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch._subclasses.fake_tensor import FakeTensorMode  # what torch.compile traces with: shapes, no memory
+
+PARAMETER_BYTES = 4  # float32
+
+
+def memory_available() -> int | None:
+    """Bytes of memory available to new allocations (Linux's MemAvailable), None where /proc/meminfo has none."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def parameter_count(build: Callable[[], torch.nn.Module]) -> int:
+    """The parameters of the module `build` returns, built on the meta device: shapes only, no memory, milliseconds
+    even for a model that would not fit."""
+    with torch.device("meta"):
+        return sum(parameter.numel() for parameter in build().parameters())
+
+
+def training_memory(forward: Callable[[], torch.nn.Module]) -> dict[str, int]:
+    """The least memory of training the module that `forward` builds and runs forward once (returning the module): its
+    float32 weights and Adam's two moments, then, at the end of the forward pass, the activations autograd saved for
+    the backward pass, or at the end of the backward pass the gradients, whichever is larger. Run on fake tensors
+    (shapes only: no memory, under a second at the paper's sizes)."""
+    saved: dict[int, int] = {}  # storage → bytes: a tensor saved by several operations is held once
+
+    def keep(tensor: torch.Tensor) -> torch.Tensor:
+        storage = tensor.untyped_storage()
+        saved[storage._cdata] = storage.nbytes()
+        return tensor
+
+    with FakeTensorMode(), torch.autograd.graph.saved_tensors_hooks(keep, lambda tensor: tensor):
+        module = forward()
+    weights = {parameter.untyped_storage()._cdata for parameter in module.parameters()}  # saved, but counted below
+    activations = sum(size for storage, size in saved.items() if storage not in weights)
+    parameters = sum(parameter.numel() for parameter in module.parameters()) * PARAMETER_BYTES
+    return {"weights and Adam state": 3 * parameters, "saved activations or gradients": max(activations, parameters)}
+
+
+def gib(size: int) -> str:
+    return f"{size / 2**30:.1f} GiB"
+
+
+def beyond_memory(needs: dict[str, int], fix: str) -> str | None:
+    """A one-line refusal when the bytes of `needs` (what → bytes) add up to more than the memory available: it gives
+    each need, the total and what is available, then `fix`; None when they fit (or /proc/meminfo says nothing)."""
+    available = memory_available()
+    needed = sum(needs.values())
+    if available is None or needed <= available:
+        return None
+    parts = ", ".join(f"{what} {gib(size)}" for what, size in sorted(needs.items(), key=lambda need: -need[1])
+                      if size >= 2**30 / 20)  # not those of 0.0 GiB
+    return f"this run needs at least {gib(needed)} of memory ({parts}), more than the {gib(available)} available: {fix}"
