@@ -121,6 +121,9 @@ def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, f
                                 f"{cfg.replay_capacity}: the run would train on its newest {cfg.replay_capacity} only; "
                                 f"--set replay_capacity={dataset.total_steps} (memory: about "
                                 f"{dataset.total_steps * 12.3e-6:.1f} GB of frames)")
+        if problem := beyond_memory({f"its {dataset.total_steps} steps": replay_bytes(dataset.total_steps, action_dim)},
+                                    "use a smaller dataset (`hauwm datasets collect` or `merge` of fewer episodes)"):
+            raise FinetuneError(f"{flag} {dataset_id}: {problem}")
         episodes = load_episodes(dataset_id, task=cfg.task, action_dim=action_dim, progress=False)
     except DatasetError as error:
         raise FinetuneError(f"{flag} {dataset_id}: {error}") from None
@@ -314,6 +317,11 @@ def incomparable_returns_note(cfg: FinetuneConfig) -> str | None:
             "of whole episodes)")
 
 
+def replay_bytes(steps: int, action_dim: int) -> int:
+    """Bytes of `steps` replay entries: a uint8 frame, a float32 action and a float32 reward each."""
+    return steps * (math.prod(IMAGE_SHAPE) + 4 * (action_dim + 1))
+
+
 def refuse_beyond_memory(cfg: FinetuneConfig, agent_class: type[Agent], action_dim: int, device: torch.device) -> None:
     """Refuse a run that cannot fit in this machine's memory (hauwm/memory.py): the agent's trained parameters (float32
     weights, gradients and Adam state on a CPU; the weights, while they are built, for a GPU) and, where the run collects
@@ -329,7 +337,7 @@ def refuse_beyond_memory(cfg: FinetuneConfig, agent_class: type[Agent], action_d
         needs = {"the agent's weights, built on the host": PARAMETER_BYTES * (agent - frozen)}
     if cfg.paradigm != "offline":
         steps = min(cfg.replay_capacity, math.ceil(cfg.steps / cfg.action_repeat))
-        needs[f"the replay of {steps} steps"] = steps * (math.prod(IMAGE_SHAPE) + 4 * (action_dim + 1))
+        needs[f"the replay of {steps} steps"] = replay_bytes(steps, action_dim)
     defaults = {"units": FinetuneConfig.units, "hidden": FinetuneConfig.hidden, "model_heads": FinetuneConfig.model_heads,
              "encoder_width": FinetuneConfig.encoder_width, "deter": WorldModelConfig.deter, "stoch": WorldModelConfig.stoch}
     larger = [f"{name} {getattr(cfg, name)}" for name, size in defaults.items() if (getattr(cfg, name) or 0) > size]

@@ -62,17 +62,19 @@ def training_memory(forward: Callable[[], torch.nn.Module]) -> dict[str, int]:
     return {"weights and Adam state": 3 * parameters, "saved activations or gradients": max(activations, parameters)}
 
 
-def gib(size: int) -> str:
-    return f"{size / 2**30:.1f} GiB"
+def size_text(size: int) -> str:
+    return f"{size / 2**30:.1f} GiB" if size >= 2**30 else f"{size / 2**20:.1f} MiB"
 
 
 def beyond_memory(needs: dict[str, int], fix: str) -> str | None:
     """A one-line refusal when the bytes of `needs` (what → bytes) add up to more than the memory available: it gives
-    each need, the total and what is available, then `fix`; None when they fit (or /proc/meminfo says nothing)."""
+    the total, the needs of 1% of it or more, what is available, then `fix`; None when they fit (or /proc/meminfo says
+    nothing)."""
     available = memory_available()
     needed = sum(needs.values())
     if available is None or needed <= available:
         return None
-    parts = ", ".join(f"{what} {gib(size)}" for what, size in sorted(needs.items(), key=lambda need: -need[1])
-                      if size >= 2**30 / 20)  # not those of 0.0 GiB
-    return f"this run needs at least {gib(needed)} of memory ({parts}), more than the {gib(available)} available: {fix}"
+    parts = ", ".join(f"{what} {size_text(size)}" for what, size in sorted(needs.items(), key=lambda need: -need[1])
+                      if size >= needed / 100)
+    return (f"this run needs at least {size_text(needed)} of memory ({parts}), more than the {size_text(available)} "
+            f"available: {fix}")

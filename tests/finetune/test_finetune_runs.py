@@ -181,6 +181,22 @@ def test_sizes_that_do_not_fit_the_export_are_named_with_it(export_dir, tmp_path
     assert (f"--pretrained {export_dir}: the new stream's feature size deter+stoch = " in capsys.readouterr().err)
 
 
+@pytest.mark.parametrize(("settings", "message"), [
+    (["--steps", "20000"], "(the replay of 10000 steps 117.3 MiB, the agent's weights, gradients and Adam state"),
+    (["--steps", "20000"], "more than the 64.0 MiB available: lower replay_capacity (the replay then keeps the newest"),
+    (["--set", "units=2000"], "more than the 64.0 MiB available: lower the agent's sizes (units 2000)"),
+])
+def test_a_run_too_large_for_the_memory_is_refused_before_it_builds_its_agent(export_dir, tmp_path, capsys, monkeypatch,
+                                                                             settings, message):
+    monkeypatch.setattr("hauwm.memory.memory_available", lambda: 2**26)  # the replay was killed hours in (exit 137)
+    monkeypatch.setattr(finetune.train, "build_agent", lambda *args: pytest.fail("built the agent"))
+    run = ["--config", "configs/finetune/demo.yaml", "--pretrained", str(export_dir), "--logdir", str(tmp_path / "run")]
+    assert main(run + settings) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert not (tmp_path / "run" / "config.yaml").exists()
+
+
 def test_a_logdir_of_something_else_is_refused_and_left_as_it_was(export_dir, tmp_path, capsys):
     """Its files were overwritten (config.yaml) or mixed with the run's (eval.csv, a replay/ of another task)."""
     run = ["--config", "configs/finetune/demo.yaml", "--steps", "2", "--pretrained", str(export_dir)]

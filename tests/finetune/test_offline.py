@@ -152,7 +152,7 @@ def test_a_runs_fingerprint_names_its_export_and_the_dataset_it_learns_from(expo
 
 
 def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_config, tmp_path, two_episodes,
-                                                            minari_dataset, random_episodes):
+                                                            minari_dataset, random_episodes, monkeypatch):
     with pytest.raises(ConfigError, match="model_heads >= 2"):
         offline_config(tiny_config, tmp_path, 2, model_heads=1)
     with pytest.raises(ConfigError, match="penalty must be one of"):
@@ -179,6 +179,11 @@ def test_bad_offline_settings_are_refused_with_clear_errors(export_dir, tiny_con
     with pytest.raises(FinetuneError, match="--dataset test/two-episodes-v0 holds 24 steps, more than replay_capacity "
                                             "20: the run would train on its newest 20 only; --set replay_capacity=24"):
         train_offline(offline_config(tiny_config, tmp_path / "d", 2, replay_capacity=20), export_dir, progress=False)
+    # a dataset larger than the memory: its loading was killed by the kernel (exit 137)
+    monkeypatch.setattr("hauwm.memory.memory_available", lambda: 2**17)
+    with pytest.raises(FinetuneError, match=r"--dataset test/two-episodes-v0: this run needs at least 0.3 MiB of memory "
+                                            r"\(its 24 steps 0.3 MiB\), more than the 0.1 MiB available: use a smaller"):
+        train_offline(offline_config(tiny_config, tmp_path / "e", 2), export_dir, progress=False)
 
 
 def posterior_starts(agent):
