@@ -52,6 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.cli import at_least  # noqa: E402
+from finetune.config import PENALTIES  # noqa: E402
 from hauwm.termination import Terminated  # noqa: E402
 
 TASK = "metaworld_drawer_close"  # without --from-run: Meta-World's scripted expert makes the data free
@@ -251,7 +252,7 @@ def main() -> int:
     p.add_argument("--imitation-steps", type=at_least(1), default=20_000, help="imitation env steps")
     p.add_argument("--lams", type=float, nargs="+", default=[5.0, 0.0],
                    help="λ of eq. 6: one offline run per value (a sweep; LOMPO's default is 5)")
-    p.add_argument("--penalty", default="loglik_std", choices=["loglik_std", "max_std", "mean_disagreement"],
+    p.add_argument("--penalty", default="loglik_std", choices=PENALTIES,
                    help="u of eq. 6 for the offline runs (finetune/penalty.py); runs of another than loglik_std are "
                         "named offline_PENALTY_lamλ")
     p.add_argument("--frozen-weights", type=float, nargs="*", default=[],

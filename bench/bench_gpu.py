@@ -309,15 +309,15 @@ def load_batches(shards: Path, batch_size: int, length: int, k_max: int, count: 
     return batches
 
 
-def bare_steps(settings: dict, batches: Iterator[dict], compile_mode: str, steps: int, device: torch.device,
+def bare_steps(settings: dict, batches: Iterator[dict], compile_setting: str, steps: int, device: torch.device,
                warm_up: int = WARM_UP) -> dict:
     """Time the bare training step (module docstring) on `batches` (on `device`) → ms, steps/s, warm-up seconds,
     peak memory, the process's CPU ms a step (cpu_ms) and, on a GPU, the device's busy ms a step over
     PROFILED_STEPS more steps (busy_ms)."""
     reset(device)
     torch.manual_seed(0)
-    module = PretrainModule(**{**settings["model"], "compile": compile_mode}).to(device)
-    module.step_losses = compiled(module.training_losses, compile_mode, device)
+    module = PretrainModule(**{**settings["model"], "compile": compile_setting}).to(device)
+    module.step_losses = compiled(module.training_losses, compile_setting, device)
     world_model_opt, dual_opt = module.configure_optimizers()
     precision = settings["precision"]
     scaler = torch.amp.GradScaler(device.type, enabled=precision == "16-mixed")
@@ -326,7 +326,7 @@ def bare_steps(settings: dict, batches: Iterator[dict], compile_mode: str, steps
     def step(index: int) -> None:
         batch = next(batches)
         noise = module.noise(batch["gaps"], index, stream=0)
-        if compile_mode != "off":
+        if compile_setting != "off":
             torch.compiler.cudagraph_mark_step_begin()
         with torch.autocast(device.type, dtype=dtype, enabled=dtype is not None, cache_enabled=False):
             terms = module.step_losses(batch["frames"], batch["gaps"], batch["num_frames"], noise)
@@ -531,7 +531,7 @@ def main() -> None:
     steps = args.steps or (40 if gpu else 16)
     fit_steps = args.fit_steps or (500 if gpu else 80)
     workers = args.workers if args.workers is not None else (4 if gpu else 2)
-    compile_mode = "reduce-overhead" if gpu else "default"
+    compile_setting = "reduce-overhead" if gpu else "default"
     rounds = args.rounds or (1 if gpu else 3)
     log_every = args.log_every or loaded["trainer"]["log_every_n_steps"]
     worker_priority = args.worker_priority or loaded["data"].get("worker_priority", "normal")
@@ -541,7 +541,7 @@ def main() -> None:
     sizes = model["world_model"]
     print(f"settings: {config.relative_to(ROOT)} (M {sizes.ensemble}, deter {sizes.deter}, stoch {sizes.stoch}, "
           f"batch {batch_size}, K_max {k_max}), "
-          f"{settings['precision']}, compiled = model.compile {compile_mode}; bare: L {lengths}, "
+          f"{settings['precision']}, compiled = model.compile {compile_setting}; bare: L {lengths}, "
           f"{WARM_UP} warm-up + {steps} timed steps; fit: L {fit_length}, model.compile "
           f"{loaded['model'].get('compile', 'off')}, {workers} workers ({worker_priority} priority), "
           f"log every {log_every} steps; "
@@ -558,7 +558,7 @@ def main() -> None:
     bare = {}
     for length in lengths:
         batches = load_batches(shards, batch_size, length, k_max, 4, device)
-        for mode in ("off", compile_mode):
+        for mode in ("off", compile_setting):
             result = bare[length, mode] = bare_steps(settings, itertools.cycle(batches), mode, steps, device)
             label = "eager" if mode == "off" else f"compiled ({mode})"
             print(f"{label:<24} {length:>3} {result['ms']:8.1f} {result['steps_per_s']:8.1f} "
@@ -582,7 +582,7 @@ def main() -> None:
         runs.append(("(a) long, unpinned", long_epochs, workers, min(fit_steps, VARIANT_STEPS), "off"))
         runs.append(("(a) pin, no thread", long_epochs, workers, min(fit_steps, VARIANT_STEPS), "training thread"))
 
-    reference_mode = compile_mode if gpu else "off"
+    reference_mode = compile_setting if gpu else "off"
     reference = bare.get((fit_length, reference_mode))
     print(f"\n{'loader alone':<18} {'workers':>7} {'batches/epoch':>13} {'batches/s':>10} {'× bare':>9}"
           "  (the fit's train loader, no model, batches copied to the device)")

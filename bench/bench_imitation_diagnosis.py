@@ -27,10 +27,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import describe_machine  # noqa: E402
-from finetune.config import load_config  # noqa: E402
 from finetune.imitation import ImitationAgent, RecordedActions  # noqa: E402
 from finetune.replay import Replay  # noqa: E402
-from finetune.run_dir import load_trained  # noqa: E402
+from finetune.run_dir import load_trained, run_config  # noqa: E402
 from finetune.train import load_dataset  # noqa: E402
 from finetune.world_model import Latent  # noqa: E402
 
@@ -61,7 +60,7 @@ def main() -> int:
     args = p.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    cfg = load_config(args.run / "config.yaml")
+    cfg = run_config(args.run)
     if cfg.paradigm != "imitation":
         sys.exit(f"{args.run}: an imitation run is needed, this one is {cfg.paradigm!r}")
     demos = load_dataset(cfg.demos, cfg, None, "--demos")

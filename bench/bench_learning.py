@@ -35,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.machine import describe_machine  # noqa: E402
 from finetune.config import load_config, parse_override  # noqa: E402
 from hauwm.termination import Terminated  # noqa: E402
+from finetune.run_dir import run_config  # noqa: E402
 from finetune.train import train  # noqa: E402
 
 # small enough for a shared CPU: ~1 update/s on one loaded core
@@ -125,7 +126,7 @@ def summarize(name: str, points: list[tuple[int, float]], baseline: list[float],
 
 def report(logdirs: list[Path], out: Path, minutes: float | None = None) -> None:
     """Random-policy baseline, a table of eval returns (one column per run) and the curve PNG."""
-    configs = [load_config(logdir / "config.yaml") for logdir in logdirs]
+    configs = [run_config(logdir) for logdir in logdirs]
     task, action_repeat, time_limit = configs[0].task, configs[0].action_repeat, configs[0].time_limit
     baseline = random_returns(task, action_repeat, time_limit, episodes=10)  # episodes as long as the runs' own
     curves = {f"{d.name}: {c.agent} agent, seed {c.seed}": read_evals(d) for c, d in zip(configs, logdirs)}
@@ -198,7 +199,7 @@ def main() -> int:
     args.chunk = args.chunk or (50_000 if args.gpu else 2000)
     settings = {**(GPU_SETTINGS if args.gpu else CPU_SETTINGS), **dict(parse_override(text) for text in args.set)}
     logdir = Path(args.logdir)
-    done = load_config(logdir / "config.yaml").steps if (logdir / "config.yaml").exists() else 0  # a run to go on with
+    done = run_config(logdir).steps if (logdir / "config.yaml").exists() else 0  # a run to go on with
     cfg = load_config(None, dict(task=args.task, agent=args.agent, seed=args.seed, logdir=args.logdir,
                                  steps=done + args.chunk, **settings))
     if args.agent == "hauwm":  # the new stream takes the export's sizes

@@ -24,6 +24,7 @@ from torch import nn
 from finetune.behavior import ActorCritic
 from finetune.config import FinetuneConfig
 from finetune.world_model import DualStreamWorldModel, Latent, RewardFn, no_param_grads
+from model.export import FrozenWorldModel
 
 
 class DivergedError(FloatingPointError):
@@ -31,7 +32,7 @@ class DivergedError(FloatingPointError):
 
 
 class Agent(nn.Module):
-    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: nn.Module | None = None,
+    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: FrozenWorldModel | None = None,
                  k1_embedding: torch.Tensor | None = None):
         super().__init__()
         self.world_model = DualStreamWorldModel(cfg, action_dim, frozen, k1_embedding)

@@ -28,10 +28,14 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 from torch.distributions import Distribution
+
+if TYPE_CHECKING:  # finetune.world_model builds its heads with this module's mlp
+    from finetune.world_model import Latent, RewardFn
 
 
 def mlp(in_dim: int, out_dim: int, units: int, layers: int = 2, layer_norm: bool = False) -> nn.Sequential:
@@ -148,7 +152,7 @@ class ActorCritic(nn.Module):
         self.horizon, self.gamma, self.lam = horizon, gamma, lam
         self.entropy_scale, self.target_fraction, self.grad_clip = entropy_scale, target_fraction, grad_clip
 
-    def losses(self, imagine: Imagine, start: object, reward: Callable | None = None
+    def losses(self, imagine: Imagine, start: Latent, reward: RewardFn | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
         """Imagine from the posterior states `start` → (actor loss, critic loss, the imagined features [H+1, N, F]
         detached, metrics), with the rewards of `reward` (None: the world model's reward head; offline RL and

@@ -60,7 +60,7 @@ def parser(subcommand: str | None = None) -> argparse.ArgumentParser:
     kept = "logs, checkpoint.pt, best.pt" + ("" if paradigm == "offline" else ", replay/")
     p.add_argument("--logdir", help=f"run directory: {kept} (overrides the config)")
     p.add_argument("--seed", type=int, help="the run's seed: weights, envs, sampling (overrides the config)")
-    p.add_argument("--device", help="auto, cpu or cuda")
+    p.add_argument("--device", help="auto, cpu, cuda or cuda:N")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any config setting, e.g. --set agent=scratch --set batch_size=16")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
@@ -77,7 +77,7 @@ def evaluate_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, help="episodes to play (default: the run's eval_episodes)")
     p.add_argument("--seed", type=int, help="env seed of the first episode (default: the run's seed + 10^9, apart from "
                                              "the seeds of the run's training episodes and evaluations)")
-    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
     return p
 

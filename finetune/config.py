@@ -1,8 +1,8 @@
 """Fine-tuning settings: one dataclass with the paper's Table 3 defaults, read from a YAML file.
 
 A config file sets any subset of the fields below; `configs/finetune/<suite>_<task>.yaml` set the task,
-its budget and its evaluation cadence. Counts named `*_steps`/`steps`/`prefill`/`*_every` are
-environment steps (frames: one agent step is `action_repeat` of them), as in the paper's budgets.
+its budget and its evaluation cadence. The counts `steps`, `prefill` and `*_every` are environment steps (frames:
+one agent step is `action_repeat` of them), as in the paper's budgets; offline RL's `steps` and `*_every` count updates.
 A setting's own value that is wrong is a ConfigError; `FinetuneError` is every other problem of a
 fine-tuning run the user can fix (a flag, a run directory, a dataset), raised throughout finetune/.
 """
@@ -26,6 +26,9 @@ PARADIGMS = ("online", "offline", "imitation")
 # the settings only one paradigm reads (the others' runs would ignore them)
 PARADIGM_SETTINGS = {"offline": ("dataset", "penalty", "penalty_scale", "penalty_frozen_weight"),
                      "imitation": ("demos", "demo_fraction", "disc_lr", "disc_gp_scale", "expert_latents")}
+
+
+ENV_SETTINGS = ("action_repeat", "time_limit", "fast_render")  # make_env's keyword arguments, FinetuneConfig's fields
 
 
 def others_settings(paradigm: str) -> dict[str, str]:
@@ -73,7 +76,7 @@ class FinetuneConfig:
     paradigm: str = "online"  # "online" RL, "offline" RL or "imitation" (docs/downstream.md); set by the subcommand
     seed: int = 0
     logdir: str = "runs/finetune"
-    device: str = "auto"  # "auto" (cuda when available), "cpu" or "cuda"
+    device: str = "auto"  # "auto" (cuda when available), "cpu", "cuda" or "cuda:N"
     threads: int = 0  # torch CPU threads, 0 = torch's default
     # speed (docs/finetuning.md, "Speed"); a resume may change them: they change what is learned only by rounding, or
     # by drawing other random numbers (num_envs: other env seeds; compile and device: other random streams)
@@ -138,7 +141,7 @@ class FinetuneConfig:
     @property
     def env_settings(self) -> dict[str, object]:
         """`make_env`'s keyword arguments for this config: the dynamics and frames its agent acts in."""
-        return {"action_repeat": self.action_repeat, "time_limit": self.time_limit, "fast_render": self.fast_render}
+        return {name: getattr(self, name) for name in ENV_SETTINGS}
 
     @property
     def training_data(self) -> tuple[str, str | None]:

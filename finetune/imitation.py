@@ -43,6 +43,7 @@ from finetune.replay import Replay
 from finetune.run_dir import exclusive
 from finetune.train import LoopHooks, dataset_replay, run
 from finetune.world_model import Latent, RewardFn, Rollout
+from model.export import FrozenWorldModel
 
 
 class MixedReplay:
@@ -100,7 +101,7 @@ def make_replay(cfg: FinetuneConfig, directory: Path, rng: np.random.Generator, 
 class ImitationAgent(Agent):
     """The online agent with a discriminator's reward in imagination and no reward loss."""
 
-    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: torch.nn.Module | None = None,
+    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: FrozenWorldModel | None = None,
                  k1_embedding: torch.Tensor | None = None):
         super().__init__(cfg, action_dim, frozen, k1_embedding)
         self.discriminator = Discriminator(self.world_model.feature_dim, action_dim, cfg.units, cfg.layer_norm,
@@ -108,8 +109,8 @@ class ImitationAgent(Agent):
         self.demos_per_batch = demos_per_batch(cfg)
         self.imagine_expert = cfg.expert_latents == "imagined"
         self.horizon = cfg.horizon  # the depths of the policy's imagined pairs: 0..H−1
-        self.expert: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's expert pairs
-        self.policy: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's imagined pairs
+        self.demo_pairs: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's expert pairs
+        self.imagined_pairs: tuple[torch.Tensor, torch.Tensor] | None = None  # this update's imagined pairs
 
     def update(self, batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         """`batch`: a MixedReplay batch, demonstrations last; its rewards are dropped."""
@@ -120,14 +121,14 @@ class ImitationAgent(Agent):
 
     def finish_update(self) -> dict[str, torch.Tensor]:
         """The discriminator's step on this update's expert and imagined pairs."""
-        metrics = self.discriminator.update(*self.expert, *self.policy)
-        self.expert = self.policy = None
+        metrics = self.discriminator.update(*self.demo_pairs, *self.imagined_pairs)
+        self.demo_pairs = self.imagined_pairs = None
         return metrics
 
     def imagined_reward(self, batch: dict[str, torch.Tensor], start: Latent) -> RewardFn:
         demos = slice(batch["action"].shape[0] - self.demos_per_batch, None)
         actions = batch["action"][demos, 1:]  # a_t, the action the expert took at step t [B_d, L−1, A]
-        self.expert = self.expert_pairs(start, demos, actions)
+        self.demo_pairs = self.expert_pairs(start, demos, actions)
         return self.discriminator_reward
 
     @torch.no_grad()
@@ -149,7 +150,7 @@ class ImitationAgent(Agent):
 
     def discriminator_reward(self, rollout: Rollout) -> torch.Tensor:
         """r_t = ℓ(z_t, a_t) for t = 0..H−1; keeps the (detached) pairs for the discriminator's step."""
-        self.policy = (rollout.feats[:-1].detach(), rollout.actions.detach())
+        self.imagined_pairs = (rollout.feats[:-1].detach(), rollout.actions.detach())
         return self.discriminator.reward(rollout.feats[:-1], rollout.actions)
 
     def optimizer_state_dicts(self) -> dict[str, dict]:

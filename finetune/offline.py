@@ -31,12 +31,13 @@ from hauwm.termination import Terminated, terminable
 from finetune.train import (EVAL_SEED, LogWindow, close_window, dataset_replay, scheduled_evaluation, start_run,
                             task_env)
 from finetune.world_model import Latent
+from model.export import FrozenWorldModel
 
 
 class OfflineAgent(Agent):
     """The online agent with eq. 6's penalised reward in imagination; logs u on dataset and imagined steps."""
 
-    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: torch.nn.Module | None = None,
+    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: FrozenWorldModel | None = None,
                  k1_embedding: torch.Tensor | None = None):
         super().__init__(cfg, action_dim, frozen, k1_embedding)
         self.penalty = PenalisedReward(self.world_model, cfg.penalty, cfg.penalty_scale, cfg.penalty_frozen_weight)

@@ -3,8 +3,8 @@
     r̃(s̃_t, a_t) = R(s̃_{t+1}) − λ · u(s̃_t, a_t),      λ = penalty_scale
 
 u is read off the M prior heads of the new action-conditioned stream, N(μ_i, σ_i²) for i = 1..M, which all
-predict s̃_{t+1} from (s̃_t, a_t), and off s̃_{t+1} itself (the sample imagination drew, one random head per
-step: DualStreamWorldModel.next_stoch). Three choices (`penalty`), LOMPO's three, reduced over the latent dims S:
+predict s̃_{t+1} from (s̃_t, a_t), and off s̃_{t+1} itself (the sample imagination drew: from one random head per
+step and trajectory, or around the heads' mean with `imagine_heads: mean`; DualStreamWorldModel.next_stoch). Three choices (`penalty`), LOMPO's three, reduced over the latent dims S:
 
     loglik_std         u = std_i [ log N(s̃_{t+1}; μ_i, σ_i²) ]     (LOMPO's default; population std over heads)
     max_std            u = max_i ‖σ_i‖₂                           (LOMPO's max_var, MOPO's penalty)
@@ -49,8 +49,8 @@ def uncertainty(kind: str, mean: torch.Tensor, std: torch.Tensor, sample: torch.
 
 class PenalisedReward:
     """r̃ for one update's imagination (a finetune.world_model.RewardFn). `metrics` holds the last values of u on
-    the dataset's own transitions (`measure_dataset`), `imagined_metrics` those on the imagined steps: a new dict
-    each call, since compiled code guards on the keys of a dict it finds filled in (a dict that grew after the
+    the dataset's own transitions (`measure_dataset` updates it), `imagined_metrics` those on the imagined steps, a
+    new dict each call: compiled code guards on the keys of a dict it finds filled in (a dict that grew after the
     first update would compile the imagination again)."""
 
     def __init__(self, world_model: DualStreamWorldModel, kind: str, scale: float, frozen_weight: float):

@@ -154,7 +154,7 @@ def dataset_replay(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int,
 
 def evaluate(agent: Agent, env, episodes: int, task: str, seed: int | None = None,
              progress: bool = False) -> dict[str, float]:
-    """Play `episodes` episodes with the actor's mode; mean return, its normalised value, success rate.
+    """Play `episodes` episodes with the actor's mode; mean return, its std, its normalised value, success rate.
     `seed` reseeds the env first (the same episodes whenever this evaluation is run again, e.g. after resume).
     The world model's posterior samples draw from torch's RNG forked and seeded with `seed` (0 without one): an
     evaluation never moves the training's random stream (how often a run evaluates leaves what it learns as it

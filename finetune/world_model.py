@@ -56,6 +56,7 @@ from finetune.behavior import ADAM_EPS, mlp
 from finetune.config import FinetuneConfig
 from finetune.pretrained import gap_embedding
 from model.config import WorldModelConfig
+from model.export import FrozenWorldModel
 from model.losses import kl_halves, reconstruction_nll
 from model.networks import Decoder, Encoder, preprocess
 from model.rssm import EnsembleRSSM, RSSMState
@@ -107,7 +108,7 @@ def no_param_grads(*modules: nn.Module) -> Iterator[None]:
 
 
 class DualStreamWorldModel(nn.Module):
-    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: nn.Module | None, k1_embedding: torch.Tensor | None):
+    def __init__(self, cfg: FinetuneConfig, action_dim: int, frozen: FrozenWorldModel | None, k1_embedding: torch.Tensor | None):
         """`frozen`: the FrozenWorldModel from `finetune.load_pretrained` (None: scratch baseline) and its
         k = 1 temporal embedding [cond_dim]."""
         super().__init__()
@@ -132,7 +133,7 @@ class DualStreamWorldModel(nn.Module):
         self.grad_clip = cfg.grad_clip
         self.conv_bf16 = cfg.conv_bf16
 
-    def _decoder(self, cfg: FinetuneConfig, frozen: nn.Module | None) -> Decoder:
+    def _decoder(self, cfg: FinetuneConfig, frozen: FrozenWorldModel | None) -> Decoder:
         if frozen is None:
             return Decoder(self.rssm.feature_dim, width=cfg.encoder_width)
         if frozen.decoder.feat_dim != self.rssm.feature_dim:

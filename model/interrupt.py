@@ -30,7 +30,7 @@ def saved_step(checkpoint: Path) -> str:
         return "?"
 
 
-def newest_checkpoint(trainer: lightning.Trainer) -> Path | None:
+def fit_checkpoint(trainer: lightning.Trainer) -> Path | None:
     """The newest checkpoint file of the fit: any of its ModelCheckpoints has written (a config may have several), or
     the one it resumed from (which those know only where Lightning restored their state: not for a run moved, or
     resumed with other checkpoint settings)."""
@@ -62,7 +62,7 @@ class ResumeNotice(Callback):
         if isinstance(bar, TQDMProgressBar) and bar._train_progress_bar is not None:  # None before training began
             bar._train_progress_bar.close()
         where = "no checkpoint was written yet"
-        if (last := newest_checkpoint(trainer)) is not None:
+        if (last := fit_checkpoint(trainer)) is not None:
             written = time.strftime("%H:%M:%S", time.localtime(last.stat().st_mtime))
             where = f"resume with --ckpt_path {last} (step {saved_step(last)}, written {written})"
         how = {130: "interrupted", 143: "terminated (SIGTERM)"}.get(self.exit_code, "stopped by the error below")

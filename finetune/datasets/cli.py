@@ -27,7 +27,9 @@ from tqdm import tqdm
 
 from hauwm.termination import interrupted_once, sigterm_as_interrupt, stopped_by
 
-ENV_SETTINGS = ("fast_render", "time_limit", "action_repeat")  # what --set may change (make_env's arguments)
+# what --set may change: finetune.config.ENV_SETTINGS, repeated here so that `--help` does not import torch (a test
+# checks they agree)
+ENV_SETTINGS = ("action_repeat", "time_limit", "fast_render")
 
 
 def parser() -> argparse.ArgumentParser:

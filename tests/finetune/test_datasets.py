@@ -850,3 +850,10 @@ def test_a_damaged_hdf5_file_is_named_not_a_traceback(random_episodes, datasets_
     assert main(["merge", "test/kept-v0", "test/damaged-v0", "--out", "test/merged-v0", "--no-progress"]) == 2
     assert "Traceback" not in capsys.readouterr().err
     assert not (datasets_root / "test" / "merged-v0").exists()
+
+
+def test_the_env_settings_collect_takes_are_the_configs():
+    from finetune.config import ENV_SETTINGS
+    from finetune.datasets import cli
+
+    assert cli.ENV_SETTINGS == ENV_SETTINGS  # repeated there so that `--help` does not import torch
