@@ -291,11 +291,27 @@ def newest_checkpoint(directory: Path, other_than: Path | None = None) -> Path |
     return max(others, key=lambda path: path.stat().st_mtime, default=None)
 
 
+def is_whole(path: Path) -> bool:
+    """Whether a checkpoint file is a whole zip archive (as torch.save writes them) whose records all pass their
+    CRC-32: not truncated, not changed in place."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return archive.testzip() is None
+    except (zipfile.BadZipFile, OSError):
+        return False
+
+
 def another_checkpoint(path: Path) -> str:
-    """Advice for a checkpoint that cannot be used: the newest other checkpoint beside it, where there is one."""
-    newest = newest_checkpoint(path.parent, other_than=path)
-    return f"use another one, e.g. {newest} (the newest beside it)" if newest else \
-        "use another one, e.g. RUN/checkpoints/last.ckpt"
+    """Advice for a checkpoint that cannot be used: the newest whole checkpoint beside it (is_whole: a disk or a copy
+    that damaged one may have damaged the others), or what to do where there is none."""
+    others = sorted((other for other in path.parent.glob("*.ckpt") if other.name != path.name),
+                    key=lambda other: other.stat().st_mtime, reverse=True)
+    if whole := next(filter(is_whole, others), None):
+        return f"use another one, e.g. {whole} (the newest whole one beside it)"
+    if others:
+        return (f"the {len(others)} other checkpoint(s) beside it are damaged too: restore one from a copy, or start "
+                "the fit afresh")
+    return "use another one, e.g. RUN/checkpoints/last.ckpt"
 
 
 def checkpoint_world_model(state: dict[str, Any], config: WorldModelConfig, path: Path) -> WorldModel:

@@ -542,8 +542,20 @@ def test_a_checkpoint_damaged_in_place_is_refused_by_export_and_resume(built_sha
     newest = max((path for path in run.glob("*.ckpt") if path != damaged), key=lambda path: path.stat().st_mtime)
     assert main(["export", str(damaged), "--out", str(tmp_path / "out")]) == 2
     assert (f"{damaged} is damaged: its record {record} fails its checksum (a disk or copy error); use "
-            f"another one, e.g. {newest} (the newest beside it)") in capsys.readouterr().err
+            f"another one, e.g. {newest} (the newest whole one beside it)") in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+    # the newest beside it damaged too (the disk or the copy that damaged one): the newest whole one is suggested
+    whole = run / "older.ckpt"
+    shutil.copy(newest, whole)
+    os.utime(whole, (1, 1))
+    damaged_in_place(newest, newest)
+    assert main(["export", str(damaged), "--out", str(tmp_path / "out")]) == 2
+    assert f"use another one, e.g. {whole} (the newest whole one beside it)" in capsys.readouterr().err
+    whole.write_bytes(whole.read_bytes()[:5000])  # truncated
+    others = len(list(run.glob("*.ckpt"))) - 1
+    assert main(["export", str(damaged), "--out", str(tmp_path / "out")]) == 2
+    assert (f"the {others} other checkpoint(s) beside it are damaged too: restore one from a copy, or start the fit "
+            "afresh") in capsys.readouterr().err
     assert fit(built_shards, tmp_path / "run", "--ckpt_path", str(damaged), "--trainer.max_steps", "30") == 2
     assert f"{damaged} is damaged: its record {record} fails its checksum" in capsys.readouterr().err
 
