@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from hauwm.arguments import MAX_TIMEOUT
 from hauwm.atomic import written_whole
+from hauwm.memory import DECODER_BYTES, beyond_memory
 from hauwm.pid_lock import locked
 
 from .shard_format import ENCODINGS, ERRORS_FILE, FORMAT_VERSION, MANIFEST_FILE, add_clip, open_writer
@@ -317,6 +318,11 @@ def validate(config: BuildConfig) -> None:
                         ("--workers", config.workers), ("--min-frames", config.min_frames)):
         if value < 1:
             raise BuildError(f"{flag} must be at least 1, got {value}")
+    cpus = len(os.sched_getaffinity(0))
+    if problem := beyond_memory({f"--workers {config.workers} decoder processes": config.workers * DECODER_BYTES},
+                                f"lower --workers (this process may use {cpus} CPUs: decoders beyond them decode no "
+                                "faster)"):
+        raise BuildError(problem)
     if config.max_clips is not None and config.max_clips < 1:
         raise BuildError(f"--max-clips must be at least 1, got {config.max_clips}")
     if config.size > MAX_SIZE:
@@ -355,12 +361,13 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
     config.out.mkdir(parents=True, exist_ok=True)
     with part_lock(config):  # one build of a part at a time: they would write the same .partial files
         check_settings(config.out, settings, digest, config.part)
+        workers = min(config.workers, len(valid))  # a worker each clip at most: one without a clip only costs memory
         log(f"shards: {len(plans)} in all, {len(mine)} in part {config.part}/{config.num_parts}, "
-            f"{len(kept)} already complete, {len(todo)} to build ({len(valid)} clips, {config.workers} workers)")
+            f"{len(kept)} already complete, {len(todo)} to build ({len(valid)} clips, {workers} workers)")
         started = time.monotonic()
         built, unchanged = [], []  # unchanged: a message for each shard --retry-failed left as it was
         decode = DecodeSettings(config.size, config.resize, config.min_frames, config.encoding, config.quality)
-        with DecodePool(config.workers, decode, config.timeout) as pool, \
+        with DecodePool(workers, decode, config.timeout) as pool, \
                 tqdm(total=len(valid), desc="build", unit="clip", disable=None) as progress:
             results = pool.imap(config.videos / f"{record.id}.webm" for record in valid)
             for plan in todo:

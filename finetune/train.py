@@ -34,7 +34,7 @@ from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
 from finetune.run_dir import (CHECKPOINT, Fingerprint, exclusive, keep_best, next_multiple, resume, run_fingerprint,
                               save_checkpoint)
-from hauwm.memory import PARAMETER_BYTES, beyond_memory, parameter_count
+from hauwm.memory import ENV_WORKER_BYTES, PARAMETER_BYTES, beyond_memory, parameter_count
 from hauwm.termination import StopRequest, Terminated, terminable
 from model.compiling import compile_mode
 from model.config import WorldModelConfig
@@ -326,7 +326,8 @@ def refuse_beyond_memory(cfg: FinetuneConfig, agent_class: type[Agent], action_d
     """Refuse a run that cannot fit in this machine's memory (hauwm/memory.py): the agent's trained parameters (float32
     weights, gradients and Adam state on a CPU; the weights, while they are built, for a GPU) and, where the run collects
     episodes, its replay at its fullest: min(replay_capacity, the run's agent steps) frames with their actions and
-    rewards. A dataset the run trains on is loaded before: the memory available is what it left."""
+    rewards, and its env worker processes. A dataset the run trains on is loaded before: the memory available is what it
+    left."""
     # built without the export: the scratch agent's parts, its new stream of the paper's deter and stoch where they follow
     # the export's (a few MB more than a small export's), less the encoder the hauwm agent takes from the export
     agent = parameter_count(lambda: agent_class(cfg, action_dim))
@@ -335,15 +336,19 @@ def refuse_beyond_memory(cfg: FinetuneConfig, agent_class: type[Agent], action_d
         needs = {"the agent's weights, gradients and Adam state": 4 * PARAMETER_BYTES * (agent - frozen)}
     else:
         needs = {"the agent's weights, built on the host": PARAMETER_BYTES * (agent - frozen)}
-    if cfg.paradigm != "offline":
+    if cfg.paradigm != "offline":  # it collects episodes
         steps = min(cfg.replay_capacity, math.ceil(cfg.steps / cfg.action_repeat))
         needs[f"the replay of {steps} steps"] = replay_bytes(steps, action_dim)
+        if cfg.num_envs > 1:  # each env in a worker process of its own
+            needs[f"{cfg.num_envs} env processes"] = cfg.num_envs * ENV_WORKER_BYTES
     defaults = {"units": FinetuneConfig.units, "hidden": FinetuneConfig.hidden, "model_heads": FinetuneConfig.model_heads,
-             "encoder_width": FinetuneConfig.encoder_width, "deter": WorldModelConfig.deter, "stoch": WorldModelConfig.stoch}
+                "encoder_width": FinetuneConfig.encoder_width, "deter": WorldModelConfig.deter,
+                "stoch": WorldModelConfig.stoch}
     larger = [f"{name} {getattr(cfg, name)}" for name, size in defaults.items() if (getattr(cfg, name) or 0) > size]
-    replay_first = max(needs, key=needs.get).startswith("the replay")
-    fix = ("lower replay_capacity (the replay then keeps the newest steps that fit)" if replay_first else
-           f"lower the agent's sizes{' (' + ', '.join(larger) + ')' if larger else ''}")
+    largest = max(needs, key=needs.get)
+    fix = ("lower replay_capacity (the replay then keeps the newest steps that fit)" if largest.startswith("the replay")
+           else "lower num_envs" if largest.endswith("env processes")
+           else f"lower the agent's sizes{' (' + ', '.join(larger) + ')' if larger else ''}")
     if problem := beyond_memory(needs, fix):
         raise FinetuneError(problem)
 

@@ -1,15 +1,15 @@
 """What a run will hold in host memory, checked against what the machine has before the run starts.
 
 A size that cannot fit (a world model of `ensemble: 100000`, an actor of `units: 100000`, a replay of 10^7 frames on a
-laptop) is refused in one line naming its settings, instead of being ended by the kernel's OOM killer (exit 137, no
+laptop, 100,000 decoder or env worker processes) is refused in one line naming its settings, instead of being ended by the kernel's OOM killer (exit 137, no
 message of ours) while it builds, or hours in. Every stage states its needs as named byte counts:
 
     problem = beyond_memory({"the world model's weights, gradients and Adam state": 87 * 2**30}, "lower …")
     if problem:
         raise ConfigError(problem)
 
-The counts are estimates from below (parameters, the activations a forward pass keeps for its backward pass, frames;
-not the interpreter, not the libraries), so a run that is refused could not have finished; one that is not refused may
+The counts are estimates from below (parameters, the activations a forward pass keeps for its backward pass, frames,
+half of what a worker process was measured to hold; not the interpreter, not the libraries), so a run that is refused could not have finished; one that is not refused may
 still need more.
 """
 
@@ -17,11 +17,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
-from torch._subclasses.fake_tensor import FakeTensorMode  # what torch.compile traces with: shapes, no memory
+if TYPE_CHECKING:  # imported where used: `hauwm shards` checks its workers without importing torch (seconds)
+    import torch
 
 PARAMETER_BYTES = 4  # float32
+DECODER_BYTES = 8 * 2**20  # a shard builder's decoder process (16 MiB of its own measured on the sample clips)
+ENV_WORKER_BYTES = 64 * 2**20  # an env worker process (94 MiB of its own measured on DMC cartpole, 64×64 frames)
 
 
 def memory_available() -> int | None:
@@ -38,6 +41,8 @@ def memory_available() -> int | None:
 def parameter_count(build: Callable[[], torch.nn.Module]) -> int:
     """The parameters of the module `build` returns, built on the meta device: shapes only, no memory, milliseconds
     even for a model that would not fit."""
+    import torch
+
     with torch.device("meta"):
         return sum(parameter.numel() for parameter in build().parameters())
 
@@ -47,6 +52,9 @@ def training_memory(forward: Callable[[], torch.nn.Module]) -> dict[str, int]:
     float32 weights and Adam's two moments, then, at the end of the forward pass, the activations autograd saved for
     the backward pass, or at the end of the backward pass the gradients, whichever is larger. Run on fake tensors
     (shapes only: no memory, under a second at the paper's sizes)."""
+    import torch
+    from torch._subclasses.fake_tensor import FakeTensorMode  # what torch.compile traces with: shapes, no memory
+
     saved: dict[int, int] = {}  # storage → bytes: a tensor saved by several operations is held once
 
     def keep(tensor: torch.Tensor) -> torch.Tensor:

@@ -329,7 +329,7 @@ def test_a_directory_holding_a_manifest_or_errors_file_of_something_else_is_refu
     assert (out / "manifest.json").read_text() == '{"my": "precious manifest"}'
 
 
-def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
+def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path, monkeypatch):
     config = BuildConfig(annotations=tmp_path / "nowhere", videos=sample_ssv2 / "videos", out=tmp_path / "out")
     result = subprocess.run(build_cli("--annotations", tmp_path / "nowhere", "--videos", sample_ssv2 / "videos",
                                       "--out", tmp_path / "out"), capture_output=True, text=True)
@@ -349,15 +349,30 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path):
                                          r"read from <id>.webm files"):
         build(config, log=quiet)
     config.videos = sample_ssv2 / "videos"
+    monkeypatch.setattr("hauwm.memory.memory_available", lambda: 16 * 2**30)
     for setting, value, message in (("max_error_rate", 1.5, "--max-error-rate .* 0..1, got 1.5"),
                                     ("timeout", 0.0, "--timeout .* must be positive and at most 86400 .*, got 0.0"),
                                     ("timeout", math.inf, "--timeout .* at most 86400 .*, got inf"),
                                     ("timeout", 1e300, "--timeout .* at most 86400 .*, got 1e[+]300"),
                                     ("num_parts", 0, "--num-parts must be at least 1, got 0"),
-                                    ("size", 100_000, "--size 100000: frames are at most 512 pixels a side")):
+                                    ("size", 100_000, "--size 100000: frames are at most 512 pixels a side"),
+                                    # 100,000 forked decoders ran the machine out of memory
+                                    ("workers", 100_000, r"this run needs at least 781.2 GiB of memory \(--workers 100000 "
+                                                         r"decoder processes 781.2 GiB\), more than the 16.0 GiB "
+                                                         r"available: lower --workers \(this process may use \d+ CPUs")):
         with pytest.raises(BuildError, match=message):
             build(dataclasses.replace(config, **{setting: value}), log=quiet)
     assert not config.out.exists()  # refused before anything was written
+
+
+def test_a_build_starts_no_more_decoders_than_it_has_clips(sample_ssv2, clean_annotations, tmp_path, monkeypatch):
+    started = []
+    monkeypatch.setattr(workers.DecodePool, "__enter__", lambda pool: started.append(len(pool.workers)) or pool)
+    config = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path / "out",
+                         splits=["validation"], workers=64)
+    build(config, log=quiet)
+    clips = json.loads((tmp_path / "out" / "manifest.json").read_text())["splits"]["validation"]["clips"]
+    assert started == [clips] and clips < 64
 
 
 @pytest.mark.slow

@@ -196,7 +196,7 @@ def test_expert_pairs_are_imagined_along_the_demonstrations_actions_or_are_their
     assert torch.equal(expert(actions)[0], feats)
     torch.manual_seed(1)
     agent.imagined_reward({"action": all_actions}, start)  # what an update pairs: entry t + 1 holds a_t
-    assert torch.equal(agent.expert[0], feats) and torch.equal(agent.expert[1], paired)
+    assert torch.equal(agent.demo_pairs[0], feats) and torch.equal(agent.demo_pairs[1], paired)
     new = slice(-agent.world_model.rssm.feature_dim, None)  # the new stream: the one that reads the actions
     other, _ = expert(-actions)
     assert torch.equal(other[0], feats[0]) and not torch.allclose(other[1:, :, new], feats[1:, :, new])
