@@ -12,6 +12,7 @@ and rebuilds the rest, byte-identically. When every shard of every part is prese
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import hashlib
 import importlib.util
@@ -19,6 +20,7 @@ import json
 import os
 import time
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,7 +29,7 @@ from tqdm import tqdm
 from hauwm.arguments import MAX_TIMEOUT
 from hauwm.atomic import written_whole
 from hauwm.memory import DECODER_BYTES, beyond_memory
-from hauwm.pid_lock import locked
+from hauwm.pid_lock import lock_holder, locked
 
 from .shard_format import ENCODINGS, ERRORS_FILE, FORMAT_VERSION, MANIFEST_FILE, add_clip, open_writer
 from .ssv2 import AnnotationError, ClipRecord, annotation_path, load_labels, load_split
@@ -228,13 +230,22 @@ def clips_held(stats: dict) -> set[str]:
     return {clip for clip in stats["planned"] if clip not in failed}
 
 
-def part_lock(config: BuildConfig):
-    """Hold the lock of this --part of the build into --out (hauwm.pid_lock) while the block runs: two builds of one
-    part (a job submitted twice, a requeue) wrote the same .partial files, and one committed a shard whose recorded
-    SHA-256 was taken while the other still wrote it."""
-    return locked(config.out / f".build.part-{config.part}.lock", lambda pid: BuildError(
-        f"{config.out} is being built by another `hauwm shards build` of part {config.part} (pid {pid}): wait for it "
-        "to end, or build into another --out"))
+@contextlib.contextmanager
+def part_lock(config: BuildConfig) -> Iterator[None]:
+    """Hold the lock of this --part of --num-parts into --out (hauwm.pid_lock) while the block runs, refusing a build
+    whose shards another running build writes: two builds of one part (a job submitted twice, a requeue) wrote the
+    same .partial files, and one committed a shard whose recorded SHA-256 was taken while the other still wrote it;
+    builds of another --num-parts have parts that overlap this one's."""
+    with locked(config.out / f".build.part-{config.part}-of-{config.num_parts}.lock", lambda pid: BuildError(
+            f"{config.out} is being built by another `hauwm shards build` of part {config.part} (pid {pid}): wait for "
+            "it to end, or build into another --out")):
+        for lock in config.out.glob(".build.part-*-of-*.lock"):
+            num_parts = lock.name.removesuffix(".lock").rpartition("-of-")[2]
+            if num_parts != str(config.num_parts) and (pid := lock_holder(lock)) is not None:
+                raise BuildError(f"{config.out} is being built by a `hauwm shards build` of --num-parts {num_parts} "
+                                 f"(pid {pid}), whose parts overlap those of --num-parts {config.num_parts}: wait for "
+                                 f"it to end, or build with --num-parts {num_parts}")
+        yield
 
 
 def partial_tar(out: Path, name: str) -> Path:

@@ -283,7 +283,7 @@ def test_a_second_build_of_a_part_while_it_runs_is_refused_and_other_parts_go_on
     """Two builds of one part (a job submitted twice, a requeue) wrote the same .partial files: one failed, and the
     other recorded a SHA-256 taken while the first still wrote the shard (`inspect --verify` then failed)."""
     config = functools.partial(two_parts, sample_ssv2, clean_annotations, tmp_path)  # config(part)
-    with pid_lock(tmp_path / ".build.part-0.lock"):  # a build of part 0, as far as the lock goes
+    with pid_lock(tmp_path / ".build.part-0-of-2.lock"):  # a build of part 0, as far as the lock goes
         with pytest.raises(BuildError, match=rf"{tmp_path} is being built by another `hauwm shards build` of part 0 "
                                              rf"\(pid {os.getpid()}\): wait for it to end, or build into another --out"):
             build(config(0), log=quiet)
@@ -291,6 +291,21 @@ def test_a_second_build_of_a_part_while_it_runs_is_refused_and_other_parts_go_on
         assert build(config(1), log=quiet) == (None, 0)  # another part goes on
     manifest, status = build(config(0), log=quiet)  # once the other build has ended
     assert manifest is not None and status == 0 and not list(tmp_path.glob(".build.part-*.lock"))
+
+
+def test_a_build_of_another_num_parts_while_one_runs_is_refused(sample_ssv2, clean_annotations, tmp_path):
+    """Their parts overlap: part 0 of 1 writes every shard part 1 of 2 writes, through the same .partial files."""
+    config = functools.partial(two_parts, sample_ssv2, clean_annotations, tmp_path)  # config(part), of 2 parts
+    with pid_lock(tmp_path / ".build.part-1-of-2.lock"):  # a build of part 1 of 2, as far as the lock goes
+        with pytest.raises(BuildError, match=rf"{tmp_path} is being built by a `hauwm shards build` of --num-parts 2 "
+                                             rf"\(pid {os.getpid()}\), whose parts overlap those of --num-parts 1: wait "
+                                             "for it to end, or build with --num-parts 2"):
+            build(dataclasses.replace(config(0), num_parts=1), log=quiet)
+        assert not list(tmp_path.glob("*.tar")) and not list(tmp_path.glob(".*.partial"))
+        assert build(config(0), log=quiet) == (None, 0)  # a part of the same --num-parts goes on
+    (tmp_path / ".build.part-0-of-3.lock").write_text("123\n")  # left by a build killed with -9: no one holds it
+    manifest, status = build(dataclasses.replace(config(0), num_parts=1), log=quiet)  # once the other has ended
+    assert manifest is not None and status == 0
 
 
 def test_parts_built_on_machines_without_a_shared_disk_assemble_where_their_files_are_copied(
