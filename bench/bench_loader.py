@@ -20,10 +20,12 @@ the slot (on a GPU, the copy into pinned memory that pinning makes in any case).
 from __future__ import annotations
 
 import argparse
+import atexit
 import functools
 import gc
 import os
 import resource
+import shutil
 import statistics
 import sys
 import tempfile
@@ -40,7 +42,7 @@ from torch.utils.data import DataLoader  # noqa: E402
 from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.build import BuildConfig, build  # noqa: E402
 from data_pipeline.batch_slots import SlotBatch  # noqa: E402
-from data_pipeline.dataloader import _init_worker, make_dataloader  # noqa: E402
+from data_pipeline.dataloader import init_worker, make_dataloader  # noqa: E402
 from data_pipeline.dataset import SequenceDataset, shard_set  # noqa: E402
 from data_pipeline.sample_data import make_sample_data  # noqa: E402
 from data_pipeline.shard_format import read_manifest  # noqa: E402
@@ -69,7 +71,7 @@ def time_epochs(dataset: SequenceDataset, make_batches, epochs: int = 1) -> tupl
 def restarting_workers(dataset: SequenceDataset) -> DataLoader:
     """A DataLoader that starts its workers at every epoch (what `make_dataloader` did before issue 12)."""
     return DataLoader(dataset, batch_size=None, num_workers=dataset.num_workers, persistent_workers=False,
-                      worker_init_fn=functools.partial(_init_worker, "normal", os.getpid()))
+                      worker_init_fn=functools.partial(init_worker, "normal", os.getpid()))
 
 
 def receive_cost(dataset: SequenceDataset, batches: int) -> tuple[float, float, float]:
@@ -116,6 +118,7 @@ def main() -> None:
     shards = args.shards
     if shards is None:
         work = Path(tempfile.mkdtemp(prefix="bench-loader-"))
+        atexit.register(shutil.rmtree, work, ignore_errors=True)
         make_sample_data(work / "ssv2", 64, workers=2)
         shards = work / "shards"
         build(BuildConfig(annotations=work / "ssv2" / "annotations", videos=work / "ssv2" / "videos", out=shards,

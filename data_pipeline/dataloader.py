@@ -61,7 +61,7 @@ def check_worker_priority(priority: str) -> None:
                           "use --data.worker_priority normal")
 
 
-def _init_worker(priority: str, training_process: int, _: int) -> None:
+def init_worker(priority: str, training_process: int, _: int) -> None:
     import cv2
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle; it stops the workers
@@ -294,7 +294,7 @@ def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0, worker_pri
     workers = dataset.num_workers > 0
     pin = torch.cuda.is_available() if pin_memory is None else pin_memory
     loader = ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
-                                 worker_init_fn=partial(_init_worker, worker_priority, os.getpid()),
+                                 worker_init_fn=partial(init_worker, worker_priority, os.getpid()),
                                  persistent_workers=workers, timeout=timeout if workers else 0,
                                  pin_memory=pin and (PIN_THREAD or not workers),
                                  prefetch_factor=PREFETCH if workers else None)

@@ -44,7 +44,7 @@ _SUITE_MODULES = {
 }
 
 
-def _suite(name: str) -> ModuleType:
+def suite_module(name: str) -> ModuleType:
     prefix = name.split("_", 1)[0]
     if prefix not in _SUITE_MODULES:
         raise EnvSettingError(
@@ -56,7 +56,7 @@ def _suite(name: str) -> ModuleType:
 
 def check_task(name: str) -> tuple[ModuleType, dict]:
     """(its suite's module, the suite's tasks) for a task `name`; an EnvSettingError listing the valid names otherwise."""
-    suite = _suite(name)
+    suite = suite_module(name)
     tasks = suite.tasks()
     if name not in tasks:
         raise EnvSettingError(
@@ -70,7 +70,7 @@ def episode_time_limit(name: str, action_repeat: int | None = None, time_limit: 
     `action_repeat` (the suite's default repeat where None)."""
     if time_limit is not None:
         return time_limit
-    suite = _suite(name)
+    suite = suite_module(name)
     return max(1, suite.EPISODE_SIM_STEPS // max(1, action_repeat or suite.DEFAULT_ACTION_REPEAT))
 
 

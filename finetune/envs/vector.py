@@ -54,7 +54,7 @@ from pathlib import Path
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 from gymnasium.vector.async_vector_env import _async_worker
 
-from finetune.envs.registry import _suite, make_env
+from finetune.envs.registry import make_env, suite_module
 
 START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 ANSWER_TIMEOUT_S = 300.0  # a step or reset takes milliseconds to a second: a worker silent this long is stuck
@@ -208,7 +208,7 @@ def forkserver_preload(name: str) -> list[str]:
     where importing dm_control opens an EGL display that no forked worker can make a context on."""
     modules = ["__main__", "finetune.envs"]
     if os.environ.get("MUJOCO_GL") != "egl":
-        modules.append(_suite(name).__name__)
+        modules.append(suite_module(name).__name__)
     return modules
 
 
