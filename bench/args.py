@@ -1,5 +1,5 @@
 """argparse types of the bench scripts: a bad duration or task name is a usage error naming its flag (argparse
-prints it with the usage line), not a traceback minutes into a benchmark. Counts use data_pipeline.cli.at_least."""
+prints it with the usage line), not a traceback minutes into a benchmark. Counts use hauwm.arguments.at_least."""
 
 from __future__ import annotations
 

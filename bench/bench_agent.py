@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.args import duration, task_name  # noqa: E402
 from bench.machine import describe_machine  # noqa: E402
-from data_pipeline.cli import at_least  # noqa: E402
+from hauwm.arguments import at_least  # noqa: E402
 from finetune import load_pretrained  # noqa: E402
 from finetune.agent import Agent  # noqa: E402
 from finetune.config import FinetuneConfig  # noqa: E402

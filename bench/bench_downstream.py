@@ -51,7 +51,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.machine import describe_machine  # noqa: E402
-from data_pipeline.cli import at_least  # noqa: E402
+from hauwm.arguments import at_least  # noqa: E402
 from finetune.config import PENALTIES  # noqa: E402
 from hauwm.termination import Terminated  # noqa: E402
 

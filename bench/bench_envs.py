@@ -28,7 +28,7 @@ from finetune.envs import PAPER_TASKS, make_env  # noqa: E402  (sets MUJOCO_GL b
 
 from bench.args import duration, task_name  # noqa: E402
 from bench.machine import describe_machine  # noqa: E402
-from data_pipeline.cli import at_least  # noqa: E402
+from hauwm.arguments import at_least  # noqa: E402
 
 
 def measure(task: str, fast_render: bool, seconds: float, min_steps: int) -> tuple[float, int, np.ndarray]:

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.machine import describe_machine  # noqa: E402
-from data_pipeline.cli import at_least  # noqa: E402
+from hauwm.arguments import at_least  # noqa: E402
 from data_pipeline.decode import decode_clip  # noqa: E402
 from data_pipeline.sample_data import make_sample_data  # noqa: E402
 from data_pipeline.ssv2 import load_split  # noqa: E402

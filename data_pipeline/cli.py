@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 import shutil
 import sys
-from collections.abc import Callable
 
-from hauwm.arguments import path
+from hauwm.arguments import at_least, path
 from hauwm.termination import interrupted_once, sigterm_as_interrupt, stopped_by
 
 from .decode import RESIZE_MODES
@@ -16,20 +15,6 @@ from .ssv2 import SPLITS, AnnotationError
 
 
 MAX_SAMPLE_CLIPS = 200_000  # sample-data: its ids come from 1..219,999 (sample_data.ID_RANGE), the broken ones too
-
-
-def at_least(least: int, most: int | None = None) -> Callable[[str], int]:
-    """An argparse type for the counts and seeds below: a whole number >= `least` (and <= `most`)."""
-    def whole_number(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = least - 1
-        if value < least or most is not None and value > most:
-            within = f">= {least}" if most is None else f"from {least} to {most}"
-            raise argparse.ArgumentTypeError(f"must be a whole number {within}, got {text!r}")
-        return value
-    return whole_number
 
 
 def _build(args: argparse.Namespace) -> int:
