@@ -31,6 +31,8 @@ import cv2
 import numpy as np
 import simplejpeg
 
+from hauwm.json_kinds import is_count
+
 ENCODINGS = {"jpeg": "jpgs", "raw": "npy"}  # encoding → member extension
 FORMAT_VERSION = 1
 MANIFEST_FILE = "manifest.json"  # a finished shard directory's index: settings, counts, per-shard checksums
@@ -80,11 +82,6 @@ def read_manifest(directory: str | Path) -> dict:
     return manifest
 
 
-def count(value: object) -> bool:
-    """A whole number ≥ 0, as a build writes clip, frame, byte and error counts (not a bool, not a float)."""
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
-
-
 def file_name(value: object) -> bool:
     """A shard's file name in its directory (no path: a name with one would read a file elsewhere)."""
     return isinstance(value, str) and value.endswith(".tar") and "/" not in value and "\\" not in value
@@ -92,19 +89,19 @@ def file_name(value: object) -> bool:
 
 def frame_histogram(value: object) -> bool:
     """A shard's frame-count histogram: {"<frames>": clips}."""
-    return isinstance(value, dict) and all(key.isdigit() and count(n) for key, n in value.items())
+    return isinstance(value, dict) and all(key.isdigit() and is_count(n) for key, n in value.items())
 
 
 # the entries of a manifest its readers use (inspect, preview, the loader, `hauwm pretrain`), part by part, as a
 # build writes them: (key, test, what the test wants)
-SETTINGS_KINDS = (("size", lambda v: count(v) and v > 0, "a positive whole number"),
+SETTINGS_KINDS = (("size", lambda v: is_count(v) and v > 0, "a positive whole number"),
                   ("resize", lambda v: isinstance(v, str), "a string"),
                   ("encoding", lambda v: v in ENCODINGS, f"one of {', '.join(ENCODINGS)}"),
-                  ("quality", count, "a whole number"))
-SPLIT_KINDS = (*((key, count, "a whole number ≥ 0") for key in ("clips", "frames", "bytes", "errors")),
+                  ("quality", is_count, "a whole number"))
+SPLIT_KINDS = (*((key, is_count, "a whole number ≥ 0") for key in ("clips", "frames", "bytes", "errors")),
                ("shards", lambda v: isinstance(v, list), "a list of shards"))
 SHARD_KINDS = (("name", file_name, "the file name of a .tar in the directory"),
-               *((key, count, "a whole number ≥ 0") for key in ("clips", "frames", "bytes")),
+               *((key, is_count, "a whole number ≥ 0") for key in ("clips", "frames", "bytes")),
                ("sha256", lambda v: isinstance(v, str), "a string"),
                ("frame_counts", frame_histogram, 'a mapping {"<frames>": clips}'))
 
@@ -124,7 +121,7 @@ def faulty_entry(manifest: dict) -> str | None:
         return None
 
     if problem := fault("settings", manifest["settings"], SETTINGS_KINDS) or fault("errors", manifest["errors"],
-                                                                                   (("total", count, "a whole number"),)):
+                                                                                   (("total", is_count, "a whole number"),)):
         return problem
     if not isinstance(manifest["splits"], dict):
         return "it has no splits (a mapping of split names)"

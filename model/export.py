@@ -32,6 +32,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load, save
 
 from hauwm.atomic import written_whole
+from hauwm.json_kinds import is_integer, is_number
 from model.config import ConfigError, WorldModelConfig, saved_settings
 from model.networks import IMAGE_SHAPE
 from model.world_model import WorldModel
@@ -173,17 +174,9 @@ def is_positive_length(value: object) -> bool:
         return False
 
 
-def is_int(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def is_number(value: object) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
-
-
 # what `world_model_from_checkpoint` records, as the analysis and fine-tuning read it: (test, what it wants)
-PROVENANCE_KINDS = {"global_step": (is_int, "a whole number"),
-                    "k_max": (lambda v: is_int(v) and v >= 1, "a whole number ≥ 1"),
+PROVENANCE_KINDS = {"global_step": (is_integer, "a whole number"),
+                    "k_max": (lambda v: is_integer(v) and v >= 1, "a whole number ≥ 1"),
                     "hcu": (lambda v: isinstance(v, bool), "true or false"),
                     "lambda_init": (is_number, "a number"),
                     "lambda_final": (is_number, "a number"),
@@ -291,7 +284,7 @@ def newest_checkpoint(directory: Path, other_than: Path | None = None) -> Path |
     return max(others, key=lambda path: path.stat().st_mtime, default=None)
 
 
-def is_whole(path: Path) -> bool:
+def is_intact(path: Path) -> bool:
     """Whether a checkpoint file is a whole zip archive (as torch.save writes them) whose records all pass their
     CRC-32: not truncated, not changed in place."""
     try:
@@ -302,11 +295,11 @@ def is_whole(path: Path) -> bool:
 
 
 def another_checkpoint(path: Path) -> str:
-    """Advice for a checkpoint that cannot be used: the newest whole checkpoint beside it (is_whole: a disk or a copy
+    """Advice for a checkpoint that cannot be used: the newest whole checkpoint beside it (is_intact: a disk or a copy
     that damaged one may have damaged the others), or what to do where there is none."""
     others = sorted((other for other in path.parent.glob("*.ckpt") if other.name != path.name),
                     key=lambda other: other.stat().st_mtime, reverse=True)
-    if whole := next(filter(is_whole, others), None):
+    if whole := next(filter(is_intact, others), None):
         return f"use another one, e.g. {whole} (the newest whole one beside it)"
     if others:
         return (f"the {len(others)} other checkpoint(s) beside it are damaged too: restore one from a copy, or start "

@@ -36,6 +36,7 @@ import gymnasium
 import numpy as np
 from tqdm import tqdm
 
+from hauwm.json_kinds import is_count
 from hauwm.termination import signals_deferred
 from hauwm.pid_lock import lock_holder, locked
 
@@ -134,17 +135,13 @@ def scan_datasets() -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
     return datasets, notes
 
 
-def _is_count(value: Any) -> bool:
-    return type(value) is int and value >= 0
-
-
 # the fields of metadata.json that are read (Minari's, then ours under "hauwm"), each where present: (test, wanted)
-METADATA_FIELDS = {"total_episodes": (_is_count, "a whole number ≥ 0"),
-                   "total_steps": (_is_count, "a whole number ≥ 0"),
+METADATA_FIELDS = {"total_episodes": (is_count, "a whole number ≥ 0"),
+                   "total_steps": (is_count, "a whole number ≥ 0"),
                    "dataset_size": (lambda v: type(v) in (int, float), "a size in MB")}
 HAUWM_FIELDS = {"task": (lambda v: isinstance(v, str), "a task's name"),
                 "source": (lambda v: isinstance(v, str), "a word"),
-                "action_repeat": (lambda v: _is_count(v) and v >= 1, "a whole number ≥ 1"),
+                "action_repeat": (lambda v: is_count(v) and v >= 1, "a whole number ≥ 1"),
                 "fast_render": (lambda v: isinstance(v, bool), "true or false"),
                 "has_success": (lambda v: isinstance(v, bool), "true or false"),
                 "complete": (lambda v: isinstance(v, bool), "true or false")}
