@@ -28,7 +28,13 @@ ENV_WORKER_BYTES = 64 * 2**20  # an env worker process (94 MiB of its own measur
 
 
 def memory_available() -> int | None:
-    """Bytes of memory available to new allocations (Linux's MemAvailable), None where /proc/meminfo has none."""
+    """Bytes of memory available to new allocations: Linux's MemAvailable, or less where this process's memory cgroup
+    (a container's, a Slurm job's `--mem`) leaves less; None where neither says."""
+    return min((size for size in (meminfo_available(), cgroup_available()) if size is not None), default=None)
+
+
+def meminfo_available() -> int | None:
+    """The machine's MemAvailable (/proc/meminfo), None where there is none."""
     try:
         for line in Path("/proc/meminfo").read_text().splitlines():
             if line.startswith("MemAvailable:"):
@@ -36,6 +42,49 @@ def memory_available() -> int | None:
     except OSError:
         pass
     return None
+
+
+# a memory cgroup's files, version 2 and version 1: (limit, usage, the memory.stat key of its inactive page cache)
+CGROUP_FILES = {2: ("memory.max", "memory.current", "inactive_file"),
+                1: ("memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file")}
+
+
+def cgroup_available(root: Path = Path("/sys/fs/cgroup"), membership: Path = Path("/proc/self/cgroup")) -> int | None:
+    """What this process's memory cgroup and every cgroup above it leave to allocate, the least of them: the limit less
+    the usage, plus the inactive page cache the kernel reclaims before its OOM killer acts; None where none has a
+    limit. `membership` lists the process's cgroups (version 2's line "0::PATH", version 1's "N:memory:PATH")."""
+    try:
+        lines = membership.read_text().splitlines()
+    except OSError:
+        return None
+    left = []
+    for line in lines:
+        _, controllers, path = line.split(":", 2)
+        version = 2 if controllers == "" else 1 if "memory" in controllers.split(",") else None
+        if version is None:
+            continue
+        base = root if version == 2 else root / "memory"
+        directory = base / path.lstrip("/")
+        while True:  # a job's limit is often set on a cgroup above the process's own (Slurm: the job's, not the step's)
+            if (size := cgroup_left(directory, *CGROUP_FILES[version])) is not None:
+                left.append(size)
+            if directory == base or base not in directory.parents:
+                break
+            directory = directory.parent
+    return min(left, default=None)
+
+
+def cgroup_left(directory: Path, limit_file: str, usage_file: str, inactive_key: str) -> int | None:
+    """What one cgroup `directory` leaves to allocate, None where it has no limit ("max", or version 1's 2^63 − 4096)
+    or cannot be read."""
+    try:
+        limit = (directory / limit_file).read_text().strip()
+        if not limit.isdigit() or int(limit) >= 2**62:
+            return None
+        stat = dict(line.split()[:2] for line in (directory / "memory.stat").read_text().splitlines() if line.strip())
+        return int(limit) - int((directory / usage_file).read_text()) + int(stat.get(inactive_key, 0))
+    except (OSError, ValueError):
+        return None
 
 
 def parameter_count(build: Callable[[], torch.nn.Module]) -> int:

@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch import nn
 
-from hauwm.memory import beyond_memory, parameter_count, training_memory
+from hauwm.memory import beyond_memory, cgroup_available, memory_available, parameter_count, training_memory
 
 # A real training step of the world model at tiny.yaml's sizes and 2,000 prior heads, in a process of its own whose
 # resident memory follows what it holds (glibc maps every allocation over 64 KiB and unmaps it when freed): it prints
@@ -100,3 +100,38 @@ def test_a_need_beyond_the_memory_available_is_named_with_the_fix(monkeypatch):
 
 def test_parameters_are_counted_without_allocating_them():
     assert parameter_count(lambda: nn.Linear(100_000, 1_000_000)) == 100_000 * 1_000_000 + 1_000_000  # 400 GB
+
+
+def write_cgroup(directory, limit_file, limit, usage_file, usage, stat):
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / limit_file).write_text(f"{limit}\n")
+    (directory / usage_file).write_text(f"{usage}\n")
+    (directory / "memory.stat").write_text(stat)
+
+
+def test_a_cgroup_limit_above_the_process_is_what_is_left_to_allocate(tmp_path):
+    """A container's or a Slurm job's limit: the kernel's OOM killer acts there, whatever the machine has free."""
+    membership = tmp_path / "cgroup"
+    membership.write_text("0::/job_7/step_0\n")
+    root = tmp_path / "sys"
+    write_cgroup(root / "job_7", "memory.max", 8 * 2**30, "memory.current", 5 * 2**30, "anon 1\ninactive_file 1073741824\n")
+    write_cgroup(root / "job_7" / "step_0", "memory.max", "max", "memory.current", 5 * 2**30, "inactive_file 0\n")
+    assert cgroup_available(root, membership) == 4 * 2**30  # 8 − 5 + 1 GiB of reclaimable page cache
+    (root / "job_7" / "memory.max").write_text("max\n")
+    assert cgroup_available(root, membership) is None
+    # version 1: the memory controller's own hierarchy; "no limit" is 2^63 − 4096
+    membership.write_text("4:memory:/docker/abc\n3:cpu:/docker/abc\n0::/\n")
+    write_cgroup(root / "memory", "memory.limit_in_bytes", 2**63 - 4096, "memory.usage_in_bytes", 2**30, "")
+    write_cgroup(root / "memory" / "docker" / "abc", "memory.limit_in_bytes", 3 * 2**30, "memory.usage_in_bytes",
+                 2**30, "cache 5\ntotal_inactive_file 0\n")
+    assert cgroup_available(root, membership) == 2 * 2**30
+
+
+def test_the_memory_available_is_the_least_of_the_machines_and_the_cgroups(monkeypatch):
+    monkeypatch.setattr("hauwm.memory.meminfo_available", lambda: 64 * 2**30)
+    monkeypatch.setattr("hauwm.memory.cgroup_available", lambda: 4 * 2**30)
+    assert memory_available() == 4 * 2**30
+    monkeypatch.setattr("hauwm.memory.cgroup_available", lambda: None)
+    assert memory_available() == 64 * 2**30
+    monkeypatch.setattr("hauwm.memory.meminfo_available", lambda: None)
+    assert memory_available() is None
