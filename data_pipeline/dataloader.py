@@ -32,7 +32,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from .batch_slots import BatchSlots, SlotBatch
-from .dataset import VERIFY_HINT, LoaderError, SequenceDataset
+from .dataset import VERIFY_HINT, LoaderError, SequenceDataset, WorkerItem
 
 RESUME_HINT = "the checkpoints written so far are intact: resume with `--ckpt_path RUN/checkpoints/last.ckpt`"
 # how torch's DataLoader iterator reports a worker that died or a batch that did not come in time
@@ -132,7 +132,7 @@ class ResumableDataLoader(DataLoader):
     worker_priority: str = "normal"  # set by `make_dataloader`, for the stalled-worker message
     slots: BatchSlots | None = None  # where this loader's workers place their batches (`make_dataloader`)
     pin_on_take: bool = False  # copy each slot into pinned memory on this thread, not torch's (`PIN_THREAD`)
-    _stream: Iterator[dict | LoaderError] | None = None  # torch's iterator of a continuous dataset, over the epochs
+    _stream: Iterator[WorkerItem] | None = None  # torch's iterator of a continuous dataset, over the epochs
     _stream_at: tuple[int, int] = (-1, 0)  # the (epoch, batches of it) `_stream` gives next
 
     def state_dict(self) -> dict:
@@ -177,14 +177,14 @@ class ResumableDataLoader(DataLoader):
             self._stream, self._stream_at = self._started(), at
         return self._rest_of_epoch()
 
-    def _started(self) -> Iterator[dict | LoaderError]:
+    def _started(self) -> Iterator[WorkerItem]:
         """torch's iterator, from workers told the dataset's position (started the first time, resumed after)."""
         batches = self._fetch(super().__iter__)
         if self.num_workers > 0:
             _defer_worker_deaths()
         return batches
 
-    def _next_batch(self, batches: Iterator[dict | SlotBatch | LoaderError]) -> dict | None:
+    def _next_batch(self, batches: Iterator[WorkerItem]) -> dict | None:
         """The next batch, None at the end (a worker's slot copied out and freed, where pinning did not already);
         an error inside a worker, handed over as its last item, raised."""
         batch = self._fetch(lambda: next(batches, None))
@@ -192,7 +192,7 @@ class ResumableDataLoader(DataLoader):
             raise batch
         return batch.take(pin=self.pin_on_take) if isinstance(batch, SlotBatch) else batch
 
-    def _raising_worker_errors(self, batches: Iterator[dict | LoaderError]) -> Iterator[dict]:
+    def _raising_worker_errors(self, batches: Iterator[WorkerItem]) -> Iterator[dict]:
         while (batch := self._next_batch(batches)) is not None:
             yield batch
 

@@ -65,6 +65,11 @@ class LoaderError(ValueError):
     """A shard directory, loader setting or loader worker that cannot work; the message says what to do."""
 
 
+# what a worker hands over: a batch (a dict, or a SlotBatch naming its frames in shared memory), or its last item, the
+# error that ended it
+WorkerItem = dict | SlotBatch | LoaderError
+
+
 @dataclass(frozen=True)
 class ShardSet:
     """The shards of one split: their URLs and, per shard, how many clips have each frame count; their frames'
@@ -329,7 +334,7 @@ class SequenceDataset(IterableDataset):
                                   f"another build); clips of at least seq_len={self.seq_len} frames: "
                                   f"{'; '.join(differing)}; {VERIFY_HINT}")
 
-    def __iter__(self) -> Iterator[dict | LoaderError]:
+    def __iter__(self) -> Iterator[WorkerItem]:
         """This worker's batches of the epoch (and, `continuous`, of the epochs after it). A DataLoader takes
         batch i from worker i mod W, and after a resume it still asks worker 0 first: so worker p plays stream
         (p + skip) mod W, which skips the sequences its stream already gave (without decoding them), and the
@@ -388,7 +393,7 @@ class SequenceDataset(IterableDataset):
         size, length, _, height, width = batch["frames"].shape
         return SlotBatch(self._slots.key, info.id, slot, (size, length, height, width), batch["id"])
 
-    def _naming_the_shard(self, batches: Iterator[dict], worker: int) -> Iterator[dict | LoaderError]:
+    def _naming_the_shard(self, batches: Iterator[dict | SlotBatch], worker: int) -> Iterator[WorkerItem]:
         """`batches`, with an error turned into a `LoaderError` naming the worker and the shard it was reading.
         A DataLoader worker hands it over as its last item, which `ResumableDataLoader` raises (torch would
         re-raise the exception with the worker's traceback pasted into its message); the main process raises it."""
