@@ -31,6 +31,8 @@ from functools import partial
 import torch
 from torch.utils.data import DataLoader
 
+from hauwm.messages import killed_by
+
 from .batch_slots import BatchSlots, SlotBatch
 from .dataset import VERIFY_HINT, LoaderError, SequenceDataset, WorkerItem
 
@@ -272,7 +274,7 @@ class ResumableDataLoader(DataLoader):
 def _death_cause(exitcode: int | None) -> str:
     if exitcode is None or exitcode >= 0:
         return f"it exited (status {exitcode}) with batches still to give: re-run with --data.num_workers 0 to see why"
-    return DEATH_CAUSES.get(-exitcode, f"killed by signal {-exitcode} ({signal.strsignal(-exitcode)})")
+    return killed_by(-exitcode, DEATH_CAUSES)
 
 
 PREFETCH = 2  # batches each worker has in flight (torch's default prefetch_factor)

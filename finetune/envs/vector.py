@@ -55,6 +55,7 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, Vecto
 from gymnasium.vector.async_vector_env import _async_worker
 
 from finetune.envs.registry import make_env, suite_module
+from hauwm.messages import killed_by
 
 START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 ANSWER_TIMEOUT_S = 300.0  # a step or reset takes milliseconds to a second: a worker silent this long is stuck
@@ -82,7 +83,7 @@ def death_cause(exitcode: int) -> str:
     """What a worker process's exit code says about how it ended."""
     if exitcode >= 0:
         return f"it exited with status {exitcode}"
-    return DEATH_CAUSES.get(-exitcode, f"killed by signal {-exitcode} ({signal.strsignal(-exitcode)})")
+    return killed_by(-exitcode, DEATH_CAUSES)
 
 
 # what the state letter of /proc/PID/stat says about a worker that does not answer
