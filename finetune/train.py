@@ -34,7 +34,7 @@ from finetune.replay import Replay
 from finetune.rollout import AgentPolicy, play_episode
 from finetune.run_dir import (CHECKPOINT, Fingerprint, exclusive, keep_best, next_multiple, resume, run_fingerprint,
                               save_checkpoint)
-from hauwm.memory import ENV_WORKER_BYTES, PARAMETER_BYTES, beyond_memory, parameter_count
+from hauwm.memory import ENV_WORKER_BYTES, PARAMETER_BYTES, beyond_memory, parameter_count, size_text
 from hauwm.termination import StopRequest, Terminated, terminable
 from model.compiling import compile_mode
 from model.config import WorldModelConfig
@@ -120,7 +120,7 @@ def load_dataset(dataset_id: str | None, cfg: FinetuneConfig, action_dim: int, f
             raise FinetuneError(f"{flag} {dataset_id} holds {dataset.total_steps} steps, more than replay_capacity "
                                 f"{cfg.replay_capacity}: the run would train on its newest {cfg.replay_capacity} only; "
                                 f"--set replay_capacity={dataset.total_steps} (memory: about "
-                                f"{dataset.total_steps * 12.3e-6:.1f} GB of frames)")
+                                f"{size_text(replay_bytes(dataset.total_steps, action_dim))} of frames)")
         if problem := beyond_memory({f"its {dataset.total_steps} steps": replay_bytes(dataset.total_steps, action_dim)},
                                     "use a smaller dataset (`hauwm datasets collect` or `merge` of fewer episodes)"):
             raise FinetuneError(f"{flag} {dataset_id}: {problem}")

@@ -24,8 +24,8 @@ from hauwm.messages import first_line
 STAGES = {
     "shards": ("data_pipeline.cli", "shard SSv2 into WebDataset tars, inspect and preview them"),
     "pretrain": ("model.cli", "pre-train the ensemble RSSM (fit, validate), export it, analyze it"),
-    "finetune": ("finetune.cli", "train an agent on a control task from the frozen export (online RL; `offline`, `imitate`, "
-                                 "`evaluate`)"),
+    "finetune": ("finetune.cli", "train an agent on a control task from the frozen export (online RL; `offline`, "
+                                 "`imitate`, `evaluate`)"),
     "datasets": ("finetune.datasets.cli", "collect, merge, inspect and list Minari datasets for offline RL"),
 }
 

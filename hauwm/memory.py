@@ -1,16 +1,17 @@
 """What a run will hold in host memory, checked against what the machine has before the run starts.
 
 A size that cannot fit (a world model of `ensemble: 100000`, an actor of `units: 100000`, a replay of 10^7 frames on a
-laptop, 100,000 decoder or env worker processes) is refused in one line naming its settings, instead of being ended by the kernel's OOM killer (exit 137, no
-message of ours) while it builds, or hours in. Every stage states its needs as named byte counts:
+laptop, 100,000 decoder or env worker processes) is refused in one line naming its settings, instead of being ended
+by the kernel's OOM killer (exit 137, no message of ours) while it builds, or hours in. Every stage states its needs
+as named byte counts:
 
     problem = beyond_memory({"the world model's weights, gradients and Adam state": 87 * 2**30}, "lower …")
     if problem:
         raise ConfigError(problem)
 
 The counts are estimates from below (parameters, the activations a forward pass keeps for its backward pass, frames,
-half of what a worker process was measured to hold; not the interpreter, not the libraries), so a run that is refused could not have finished; one that is not refused may
-still need more.
+less than a worker process was measured to hold; not the interpreter, not the libraries), so a run that is refused
+could not have finished; one that is not refused may still need more.
 """
 
 from __future__ import annotations
@@ -125,8 +126,8 @@ def size_text(size: int) -> str:
 
 def beyond_memory(needs: dict[str, int], fix: str) -> str | None:
     """A one-line refusal when the bytes of `needs` (what → bytes) add up to more than the memory available: it gives
-    the total, the needs of 1% of it or more, what is available, then `fix`; None when they fit (or /proc/meminfo says
-    nothing)."""
+    the total, the needs of 1% of it or more, what is available, then `fix`; None when they fit (or nothing says what is
+    available)."""
     available = memory_available()
     needed = sum(needs.values())
     if available is None or needed <= available:

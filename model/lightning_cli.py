@@ -45,10 +45,10 @@ from model.config import ConfigError, WorldModelConfig, read_config_file
 from model.export import checkpoint_world_model, newest_checkpoint, read_checkpoint
 from model.interrupt import FitInterrupted, ResumeNotice
 from model.module import PretrainModule, refuse_other_size
-from model.progress import StepProgressBar
-from model.sigterm import AgreedSigterm
 from model.networks import IMAGE_SHAPE
+from model.progress import StepProgressBar
 from model.rssm import RSSMState
+from model.sigterm import AgreedSigterm
 from model.world_model import WorldModel
 
 PRECISIONS = ("32-true", "32", "16-mixed", "16", "bf16-mixed", "bf16")  # each with Lightning's other name for it
