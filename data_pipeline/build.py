@@ -329,10 +329,10 @@ def validate(config: BuildConfig) -> None:
                         ("--workers", config.workers), ("--min-frames", config.min_frames)):
         if value < 1:
             raise BuildError(f"{flag} must be at least 1, got {value}")
-    cpus = len(os.sched_getaffinity(0))
-    if problem := beyond_memory({f"--workers {config.workers} decoder processes": config.workers * DECODER_BYTES},
-                                f"lower --workers (this process may use {cpus} CPUs: decoders beyond them decode no "
-                                "faster)"):
+    decoders = min(config.workers, (config.max_clips or config.workers) * len(config.splits))  # one a clip at most
+    if problem := beyond_memory({f"--workers {decoders} decoder processes": decoders * DECODER_BYTES},
+                                f"lower --workers (this machine has {os.cpu_count()} CPUs: decoders beyond them decode "
+                                "no faster)"):
         raise BuildError(problem)
     if config.max_clips is not None and config.max_clips < 1:
         raise BuildError(f"--max-clips must be at least 1, got {config.max_clips}")

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 from tqdm import tqdm
 
 from finetune.agent import Agent, DivergedError
@@ -38,7 +39,7 @@ from hauwm.memory import ENV_WORKER_BYTES, PARAMETER_BYTES, beyond_memory, param
 from hauwm.termination import StopRequest, Terminated, terminable
 from model.compiling import compile_mode
 from model.config import WorldModelConfig
-from model.networks import IMAGE_SHAPE, Encoder
+from model.networks import IMAGE_SHAPE, Decoder, Encoder
 
 ENV_SEED_STRIDE = 1_000_000  # env i of a fresh run starts from seed + i · this (env 0: the seed a single env gets)
 EVAL_SEED = 10_000  # a run's evaluation env plays from seed + this (+ the step of a reseeded evaluation)
@@ -329,27 +330,34 @@ def refuse_beyond_memory(cfg: FinetuneConfig, agent_class: type[Agent], action_d
     rewards, and its env worker processes. A dataset the run trains on is loaded before: the memory available is what it
     left."""
     # built without the export: the scratch agent's parts, its new stream of the paper's deter and stoch where they follow
-    # the export's (a few MB more than a small export's), less the encoder the hauwm agent takes from the export
+    # the export's (a few MB more than a small export's); the hauwm agent's encoder and decoder are the export's (its
+    # decoder a copy, of the export's size: left out with the scratch ones, which are sized by encoder_width)
     agent = parameter_count(lambda: agent_class(cfg, action_dim))
-    frozen = parameter_count(lambda: Encoder(cfg.encoder_width, 32 * cfg.encoder_width)) if cfg.agent == "hauwm" else 0
+    if cfg.agent == "hauwm":
+        feature_dim = (cfg.deter or WorldModelConfig.deter) + (cfg.stoch or WorldModelConfig.stoch)
+        agent -= parameter_count(lambda: nn.ModuleList([Encoder(cfg.encoder_width, 32 * cfg.encoder_width),
+                                                        Decoder(feature_dim, cfg.encoder_width)]))
     if device.type == "cpu":
-        needs = {"the agent's weights, gradients and Adam state": 4 * PARAMETER_BYTES * (agent - frozen)}
+        needs = {"the agent's weights, gradients and Adam state": 4 * PARAMETER_BYTES * agent}
     else:
-        needs = {"the agent's weights, built on the host": PARAMETER_BYTES * (agent - frozen)}
+        needs = {"the agent's weights, built on the host": PARAMETER_BYTES * agent}
     if cfg.paradigm != "offline":  # it collects episodes
         steps = min(cfg.replay_capacity, math.ceil(cfg.steps / cfg.action_repeat))
         needs[f"the replay of {steps} steps"] = replay_bytes(steps, action_dim)
         if cfg.num_envs > 1:  # each env in a worker process of its own
             needs[f"{cfg.num_envs} env processes"] = cfg.num_envs * ENV_WORKER_BYTES
     defaults = {"units": FinetuneConfig.units, "hidden": FinetuneConfig.hidden, "model_heads": FinetuneConfig.model_heads,
-                "encoder_width": FinetuneConfig.encoder_width, "deter": WorldModelConfig.deter,
-                "stoch": WorldModelConfig.stoch}
+                "deter": WorldModelConfig.deter, "stoch": WorldModelConfig.stoch}
+    if cfg.agent == "scratch":
+        defaults["encoder_width"] = FinetuneConfig.encoder_width
     larger = [f"{name} {getattr(cfg, name)}" for name, size in defaults.items() if (getattr(cfg, name) or 0) > size]
-    largest = max(needs, key=needs.get)
-    fix = ("lower replay_capacity (the replay then keeps the newest steps that fit)" if largest.startswith("the replay")
-           else "lower num_envs" if largest.endswith("env processes")
-           else f"lower the agent's sizes{' (' + ', '.join(larger) + ')' if larger else ''}")
-    if problem := beyond_memory(needs, fix):
+    fixes = []  # for each need of a quarter of the total or more, the largest first
+    for what, size in sorted(needs.items(), key=lambda need: -need[1]):
+        if size >= sum(needs.values()) / 4:
+            fixes.append("replay_capacity (the replay then keeps the newest steps that fit)" if what.startswith(
+                "the replay") else "num_envs" if what.endswith("env processes") else
+                f"the agent's sizes{' (' + ', '.join(larger) + ')' if larger else ''}")
+    if problem := beyond_memory(needs, f"lower {' or '.join(fixes)}"):
         raise FinetuneError(problem)
 
 

@@ -24,6 +24,7 @@ if TYPE_CHECKING:  # imported where used: `hauwm shards` checks its workers with
     import torch
 
 PARAMETER_BYTES = 4  # float32
+UNCOUNTABLE = 2**100  # the need of a tensor whose size overflows torch's 64-bit byte count
 DECODER_BYTES = 8 * 2**20  # a shard builder's decoder process (16 MiB of its own measured on the sample clips)
 ENV_WORKER_BYTES = 64 * 2**20  # an env worker process (94 MiB of its own measured on DMC cartpole, 64×64 frames)
 
@@ -60,6 +61,8 @@ def cgroup_available(root: Path = Path("/sys/fs/cgroup"), membership: Path = Pat
         return None
     left = []
     for line in lines:
+        if line.count(":") < 2:
+            continue
         _, controllers, path = line.split(":", 2)
         version = 2 if controllers == "" else 1 if "memory" in controllers.split(",") else None
         if version is None:
@@ -82,10 +85,15 @@ def cgroup_left(directory: Path, limit_file: str, usage_file: str, inactive_key:
         limit = (directory / limit_file).read_text().strip()
         if not limit.isdigit() or int(limit) >= 2**62:
             return None
-        stat = dict(line.split()[:2] for line in (directory / "memory.stat").read_text().splitlines() if line.strip())
-        return int(limit) - int((directory / usage_file).read_text()) + int(stat.get(inactive_key, 0))
+        usage = int((directory / usage_file).read_text())
     except (OSError, ValueError):
         return None
+    try:
+        stat = dict(line.split()[:2] for line in (directory / "memory.stat").read_text().splitlines() if line.strip())
+        inactive = int(stat.get(inactive_key, 0))
+    except (OSError, ValueError):  # the limit still holds
+        inactive = 0
+    return max(int(limit) - usage + inactive, 0)
 
 
 def parameter_count(build: Callable[[], torch.nn.Module]) -> int:
@@ -93,8 +101,13 @@ def parameter_count(build: Callable[[], torch.nn.Module]) -> int:
     even for a model that would not fit."""
     import torch
 
-    with torch.device("meta"):
-        return sum(parameter.numel() for parameter in build().parameters())
+    try:
+        with torch.device("meta"):
+            return sum(parameter.numel() for parameter in build().parameters())
+    except RuntimeError as error:
+        if "overflow" in str(error):  # a size past 2^63 bytes: more than any machine has
+            return UNCOUNTABLE
+        raise
 
 
 def training_memory(forward: Callable[[], torch.nn.Module]) -> dict[str, int]:
@@ -112,8 +125,13 @@ def training_memory(forward: Callable[[], torch.nn.Module]) -> dict[str, int]:
         saved[storage._cdata] = storage.nbytes()
         return tensor
 
-    with FakeTensorMode(), torch.autograd.graph.saved_tensors_hooks(keep, lambda tensor: tensor):
-        module = forward()
+    try:
+        with FakeTensorMode(), torch.autograd.graph.saved_tensors_hooks(keep, lambda tensor: tensor):
+            module = forward()
+    except RuntimeError as error:
+        if "overflow" in str(error):  # a size past 2^63 bytes: more than any machine has
+            return {"weights and Adam state": UNCOUNTABLE}
+        raise
     weights = {parameter.untyped_storage()._cdata for parameter in module.parameters()}  # saved, but counted below
     activations = sum(size for storage, size in saved.items() if storage not in weights)
     parameters = sum(parameter.numel() for parameter in module.parameters()) * PARAMETER_BYTES
@@ -121,7 +139,12 @@ def training_memory(forward: Callable[[], torch.nn.Module]) -> dict[str, int]:
 
 
 def size_text(size: int) -> str:
-    return f"{size / 2**30:.1f} GiB" if size >= 2**30 else f"{size / 2**20:.1f} MiB"
+    if size >= UNCOUNTABLE:
+        return "2^63 bytes"
+    for unit, scale in (("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30)):
+        if size >= scale:
+            return f"{size / scale:.1f} {unit}"
+    return f"{size / 2**20:.1f} MiB"
 
 
 def beyond_memory(needs: dict[str, int], fix: str) -> str | None:

@@ -6,7 +6,7 @@ checkpoint directory.
         ...
     with locked(path, refused):  # the same, `refused(pid)` raised instead, and the file deleted when the block ends
         ...
-    lock_holder(path)         # the pid holding it now, None where none does
+    lock_holder(path)         # the pid holding it now ('?' before it is written), None where none does
 
 A holder may delete the file before it lets go; a process that opened the old file meanwhile locks the new one.
 """
@@ -83,14 +83,16 @@ def _flock_soon(lock: IO) -> bool:
             time.sleep(0.005)
 
 
-def lock_holder(path: Path) -> int | None:
-    """The pid of the process holding the lock on `path` now, None where none does."""
+def lock_holder(path: Path) -> int | str | None:
+    """The pid of the process holding the lock on `path` now ('?' where it has not written it yet), None where none
+    does."""
     try:
         with open(path) as lock:
             try:
                 fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
             except BlockingIOError:
-                return int(lock.read().strip() or 0) or None
-    except (OSError, ValueError):
+                text = lock.read().strip()
+                return int(text) if text.isdigit() else "?"
+    except OSError:
         pass
     return None

@@ -290,8 +290,8 @@ def is_intact(path: Path) -> bool:
     try:
         with zipfile.ZipFile(path) as archive:
             return archive.testzip() is None
-    except (zipfile.BadZipFile, OSError):
-        return False
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, NotImplementedError, RuntimeError):  # a damaged
+        return False  # directory: names that are not UTF-8, a method or an encryption it does not hold
 
 
 def another_checkpoint(path: Path) -> str:

@@ -350,33 +350,51 @@ def settle_trainer(trainer, subcommand: str, resuming: bool) -> None:
         trainer.precision = "bf16-mixed"
 
 
+ESTIMATED_LENGTH = 32  # the longest sequence the memory estimate runs (~10 ms a step on fake tensors); longer ones
+#                       are extrapolated from it and half of it: the saved activations grow linearly with the length
+
+
 def refuse_beyond_memory(config) -> None:
     """Refuse a fit whose world model (config.model.world_model) cannot fit in this machine's memory: on a
     CPU, its training at config.data's batch size and sequence length (weights, Adam state, activations); for a GPU,
     its weights while they are built on the host (hauwm/memory.py; a GPU's own memory running out is one line of
-    `hauwm`'s)."""
+    `hauwm`'s). A batch size or length the loader refuses is left to it."""
     world_model = WorldModelConfig(**config.model.world_model.as_dict()).validate()  # named as the module names it
     accelerator, batch_size, seq_len = config.trainer.accelerator, config.data.batch_size, config.data.seq_len
+    if not (isinstance(batch_size, int) and isinstance(seq_len, int) and batch_size >= 1 and seq_len >= 2):
+        return
 
-    def forward() -> WorldModel:  # one training batch through the model, on fake tensors
-        model = WorldModel(world_model)
-        with torch.autocast("cpu", torch.bfloat16, enabled="16" in str(config.trainer.precision)):
-            obs = model.observe(torch.zeros(batch_size, seq_len, *IMAGE_SHAPE, dtype=torch.uint8),
-                                torch.ones(batch_size, seq_len, dtype=torch.long), torch.full((batch_size,), seq_len))
-            model.decode(RSSMState(obs.deter, obs.stoch))
-        return model
+    def training(length: int) -> dict[str, int]:
+        def forward() -> WorldModel:  # one training batch through the model, on fake tensors
+            model = WorldModel(world_model)
+            with torch.autocast("cpu", torch.bfloat16, enabled="16" in str(config.trainer.precision)):
+                obs = model.observe(torch.zeros(batch_size, length, *IMAGE_SHAPE, dtype=torch.uint8),
+                                    torch.ones(batch_size, length, dtype=torch.long), torch.full((batch_size,), length))
+                model.decode(RSSMState(obs.deter, obs.stoch))
+            return model
 
-    if accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available()):
-        needs = training_memory(forward)
-    else:
-        needs = {"weights built on the host": PARAMETER_BYTES * parameter_count(lambda: WorldModel(world_model))}
+        return training_memory(forward)
+
     paper = WorldModelConfig()
     larger = [f"{name} {value}" for name, value in world_model.to_dict().items()
               if type(value) is int and value > getattr(paper, name)]
-    fix = (f"lower model.world_model's sizes ({', '.join(larger)}; the paper's are in configs/pretrain/ssv2.yaml)"
-           if larger else "lower --data.batch_size or --data.seq_len")
+    sizes = f"model.world_model's sizes ({', '.join(larger)}; the paper's are in configs/pretrain/ssv2.yaml)"
+    if accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available()):
+        needs = training(min(seq_len, ESTIMATED_LENGTH))
+        if seq_len > ESTIMATED_LENGTH:  # affine in the length: extrapolated from two lengths
+            short = training(ESTIMATED_LENGTH // 2)
+            needs = {what: size + (size - short[what]) * (seq_len - ESTIMATED_LENGTH) // (ESTIMATED_LENGTH // 2)
+                     for what, size in needs.items()}
+        what = f"model.world_model at batch_size {batch_size} × seq_len {seq_len}"
+        batch = "--data.batch_size or --data.seq_len"
+        weights_first = needs["weights and Adam state"] >= needs.get("saved activations or gradients", 0)
+        fix = f"lower {sizes}, or {batch}" if larger and weights_first else \
+            f"lower {batch}{', or ' + sizes if larger else ''}"
+    else:
+        needs = {"weights built on the host": PARAMETER_BYTES * parameter_count(lambda: WorldModel(world_model))}
+        what, fix = "model.world_model", f"lower {sizes}"
     if problem := beyond_memory(needs, fix):
-        raise ConfigError(f"model.world_model at batch_size {batch_size} × seq_len {seq_len}: {problem}")
+        raise ConfigError(f"{what}: {problem}")
 
 
 def refuse_nodes_without_a_cluster(trainer) -> None:

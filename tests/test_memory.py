@@ -135,3 +135,15 @@ def test_the_memory_available_is_the_least_of_the_machines_and_the_cgroups(monke
     assert memory_available() == 64 * 2**30
     monkeypatch.setattr("hauwm.memory.meminfo_available", lambda: None)
     assert memory_available() is None
+
+
+def test_a_cgroup_read_in_part_still_limits_and_never_leaves_less_than_nothing(tmp_path):
+    membership = tmp_path / "cgroup"
+    membership.write_text("garbage\n0::/job\n")  # a line of another format is passed over
+    root = tmp_path / "sys"
+    (root / "job").mkdir(parents=True)
+    (root / "job" / "memory.max").write_text(f"{2**30}\n")
+    (root / "job" / "memory.current").write_text(f"{2**29}\n")  # no memory.stat: the limit holds all the same
+    assert cgroup_available(root, membership) == 2**29
+    (root / "job" / "memory.current").write_text(f"{2**31}\n")  # over its limit (reclaiming)
+    assert cgroup_available(root, membership) == 0

@@ -70,3 +70,18 @@ def test_locked_raises_the_callers_error_and_deletes_its_file(tmp_path):
             pass
         assert path.exists()  # the refused one leaves the holder's file
     assert not path.exists() and path.parent.is_dir()
+
+
+def test_a_lock_held_before_its_holder_wrote_its_pid_is_held(tmp_path):
+    """Between the flock and the pid's write, lock_holder said the lock was free (a build of another --num-parts then
+    went on beside it)."""
+    import fcntl
+
+    path = tmp_path / ".lock"
+    with open(path, "w") as holder:
+        fcntl.flock(holder, fcntl.LOCK_EX)
+        assert lock_holder(path) == "?"
+        holder.write("garbage")
+        holder.flush()
+        assert lock_holder(path) == "?"
+    assert lock_holder(path) is None

@@ -374,7 +374,8 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path, monkeypatch):
                                     # 100,000 forked decoders ran the machine out of memory
                                     ("workers", 100_000, r"this run needs at least 781.2 GiB of memory \(--workers 100000 "
                                                          r"decoder processes 781.2 GiB\), more than the 16.0 GiB "
-                                                         r"available: lower --workers \(this process may use \d+ CPUs")):
+                                                         r"available: lower --workers \(this machine has \d+ CPUs"),
+                                    ("max_clips", 0, "--max-clips must be at least 1, got 0")):
         with pytest.raises(BuildError, match=message):
             build(dataclasses.replace(config, **{setting: value}), log=quiet)
     assert not config.out.exists()  # refused before anything was written
@@ -483,3 +484,13 @@ def test_retry_failed_never_loses_a_clip_a_shard_holds(sample_ssv2, clean_annota
     assert any(line.startswith("kept validation-000000.tar as it was: rebuilt, it would lose 2 of the clips it holds "
                                "(missing: 2; e.g. ") and "must hold every clip's video" in line for line in lines)
     assert not list(config.out.glob(".*.partial"))
+
+
+def test_workers_beyond_the_clips_are_not_counted_against_the_memory(sample_ssv2, clean_annotations, tmp_path,
+                                                                    monkeypatch):
+    """A build starts a decoder a clip at most: --workers 100000 --max-clips 2 starts 2 (one split)."""
+    monkeypatch.setattr("hauwm.memory.memory_available", lambda: 2**30)
+    config = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path / "out",
+                         splits=["validation"], workers=100_000, max_clips=2)
+    manifest, status = build(config, log=quiet)
+    assert status == 0 and manifest["splits"]["validation"]["clips"] == 2

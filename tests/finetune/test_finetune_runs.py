@@ -185,7 +185,7 @@ def test_sizes_that_do_not_fit_the_export_are_named_with_it(export_dir, tmp_path
     (["--steps", "20000"], "(the replay of 10000 steps 117.3 MiB, the agent's weights, gradients and Adam state"),
     (["--steps", "20000"], "more than the 64.0 MiB available: lower replay_capacity (the replay then keeps the newest"),
     (["--set", "units=2000"], "more than the 64.0 MiB available: lower the agent's sizes (units 2000)"),
-    (["--set", "num_envs=8"], "(8 env processes 512.0 MiB, the agent's weights"),
+    (["--set", "num_envs=8"], "(8 env processes 512.0 MiB)"),
     (["--set", "num_envs=8"], "more than the 64.0 MiB available: lower num_envs"),
 ])
 def test_a_run_too_large_for_the_memory_is_refused_before_it_builds_its_agent(export_dir, tmp_path, capsys, monkeypatch,

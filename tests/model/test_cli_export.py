@@ -26,7 +26,7 @@ from model.export import ExportError, FrozenWorldModel, load_frozen
 from model.module import PretrainModule
 from model.rssm import RSSMState
 
-from conftest import RUN_ARGS, RUN_STEPS, TINY_CONFIG, TINY_SIZES, fit, make_batch  # noqa: I001 (tests/model/conftest.py)
+from conftest import RUN_ARGS, RUN_STEPS, SMALL, TINY_CONFIG, TINY_SIZES, fit, make_batch  # noqa: I001 (tests/model/conftest.py)
 
 
 def scalars(run, tag: str) -> list[float]:
@@ -218,6 +218,10 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         # Lightning's seed_everything raised numpy's ValueError in a traceback
         (["--seed_everything", "4294967296"], "seed_everything 4294967296: a seed is a whole number from 0 to 4294967295"),
         (["--seed_everything", "-1"], "seed_everything -1: a seed is a whole number from 0 to 4294967295"),
+        # the memory estimate ran these through the model first: a traceback from deep inside torch
+        (["--data.seq_len", "0"], "--data.seq_len must be at least 2 (a sequence must hold a gap k"),
+        (["--data.batch_size", "-1"], "--data.batch_size must be at least 1, got -1"),
+        (["--model.world_model.deter", str(2**40)], "needs at least 2^63 bytes of memory"),  # torch's size overflowed
     ],
 )
 def test_bad_configurations_are_refused_before_training(built_shards, tmp_path, capsys, flags, message):
@@ -935,3 +939,31 @@ def test_a_stopped_fit_of_a_moved_run_names_the_checkpoint_it_resumed_from(built
                "--trainer.max_steps", str(RUN_STEPS + 5)) == 130
     assert (f"interrupted at step {RUN_STEPS}; resume with --ckpt_path {tmp_path / 'checkpoints' / 'last.ckpt'} (step "
             f"{RUN_STEPS}, written") in capsys.readouterr().err and step
+
+
+def test_the_memory_estimate_of_a_long_sequence_is_extrapolated_exactly(monkeypatch):
+    """Sequences longer than ESTIMATED_LENGTH are not run through the model (a step costs ~10 ms on fake tensors:
+    --data.seq_len 100000 stalled for minutes); the saved activations grow linearly with the length."""
+    from jsonargparse import Namespace
+
+    from hauwm.memory import training_memory
+    from model import lightning_cli
+    from model.networks import IMAGE_SHAPE
+    from model.rssm import RSSMState
+    from model.world_model import WorldModel
+
+    length = 3 * lightning_cli.ESTIMATED_LENGTH + 5
+    estimated = {}
+    monkeypatch.setattr(lightning_cli, "beyond_memory", lambda needs, fix: estimated.update(needs))
+    config = Namespace(model=Namespace(world_model=Namespace(**SMALL.to_dict())), data=Namespace(batch_size=2,
+                       seq_len=length), trainer=Namespace(accelerator="cpu", precision="32-true"))
+    lightning_cli.refuse_beyond_memory(config)
+
+    def forward():
+        model = WorldModel(SMALL)
+        obs = model.observe(torch.zeros(2, length, *IMAGE_SHAPE, dtype=torch.uint8), torch.ones(2, length,
+                            dtype=torch.long), torch.full((2,), length))
+        model.decode(RSSMState(obs.deter, obs.stoch))
+        return model
+
+    assert estimated == training_memory(forward)
