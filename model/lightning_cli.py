@@ -378,7 +378,8 @@ def refuse_beyond_memory(config) -> None:
     paper = WorldModelConfig()
     larger = [f"{name} {value}" for name, value in world_model.to_dict().items()
               if type(value) is int and value > getattr(paper, name)]
-    sizes = f"model.world_model's sizes ({', '.join(larger)}; the paper's are in configs/pretrain/ssv2.yaml)"
+    sizes = "model.world_model's sizes" + (f" ({', '.join(larger)}; the paper's are in configs/pretrain/ssv2.yaml)"
+                                           if larger else "")
     if accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available()):
         needs = training(min(seq_len, ESTIMATED_LENGTH))
         if seq_len > ESTIMATED_LENGTH:  # affine in the length: extrapolated from two lengths
@@ -388,8 +389,7 @@ def refuse_beyond_memory(config) -> None:
         what = f"model.world_model at batch_size {batch_size} × seq_len {seq_len}"
         batch = "--data.batch_size or --data.seq_len"
         weights_first = needs["weights and Adam state"] >= needs.get("saved activations or gradients", 0)
-        fix = f"lower {sizes}, or {batch}" if larger and weights_first else \
-            f"lower {batch}{', or ' + sizes if larger else ''}"
+        fix = f"lower {sizes}, or {batch}" if weights_first else f"lower {batch}, or {sizes}"
     else:
         needs = {"weights built on the host": PARAMETER_BYTES * parameter_count(lambda: WorldModel(world_model))}
         what, fix = "model.world_model", f"lower {sizes}"
