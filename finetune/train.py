@@ -337,26 +337,25 @@ def refuse_beyond_memory(cfg: FinetuneConfig, agent_class: type[Agent], action_d
         feature_dim = (cfg.deter or WorldModelConfig.deter) + (cfg.stoch or WorldModelConfig.stoch)
         agent -= parameter_count(lambda: nn.ModuleList([Encoder(cfg.encoder_width, 32 * cfg.encoder_width),
                                                         Decoder(feature_dim, cfg.encoder_width)]))
-    if device.type == "cpu":
-        needs = {"the agent's weights, gradients and Adam state": 4 * PARAMETER_BYTES * agent}
-    else:
-        needs = {"the agent's weights, built on the host": PARAMETER_BYTES * agent}
-    if cfg.paradigm != "offline":  # it collects episodes
-        steps = min(cfg.replay_capacity, math.ceil(cfg.steps / cfg.action_repeat))
-        needs[f"the replay of {steps} steps"] = replay_bytes(steps, action_dim)
-        if cfg.num_envs > 1:  # each env in a worker process of its own
-            needs[f"{cfg.num_envs} env processes"] = cfg.num_envs * ENV_WORKER_BYTES
     defaults = {"units": FinetuneConfig.units, "hidden": FinetuneConfig.hidden, "model_heads": FinetuneConfig.model_heads,
                 "deter": WorldModelConfig.deter, "stoch": WorldModelConfig.stoch}
     if cfg.agent == "scratch":
         defaults["encoder_width"] = FinetuneConfig.encoder_width
     larger = [f"{name} {getattr(cfg, name)}" for name, size in defaults.items() if (getattr(cfg, name) or 0) > size]
-    fixes = []  # for each need of a quarter of the total or more, the largest first
-    for what, size in sorted(needs.items(), key=lambda need: -need[1]):
-        if size >= sum(needs.values()) / 4:
-            fixes.append("replay_capacity (the replay then keeps the newest steps that fit)" if what.startswith(
-                "the replay") else "num_envs" if what.endswith("env processes") else
-                f"the agent's sizes{' (' + ', '.join(larger) + ')' if larger else ''}")
+    sizes = f"the agent's sizes{' (' + ', '.join(larger) + ')' if larger else ''}"
+    if device.type == "cpu":  # (what, bytes, its fix)
+        parts = [("the agent's weights, gradients and Adam state", 4 * PARAMETER_BYTES * agent, sizes)]
+    else:
+        parts = [("the agent's weights, built on the host", PARAMETER_BYTES * agent, sizes)]
+    if cfg.paradigm != "offline":  # it collects episodes
+        steps = min(cfg.replay_capacity, math.ceil(cfg.steps / cfg.action_repeat))
+        parts.append((f"the replay of {steps} steps", replay_bytes(steps, action_dim),
+                      "replay_capacity (the replay then keeps the newest steps that fit)"))
+        if cfg.num_envs > 1:  # each env in a worker process of its own
+            parts.append((f"{cfg.num_envs} env processes", cfg.num_envs * ENV_WORKER_BYTES, "num_envs"))
+    needs = {what: size for what, size, _ in parts}
+    # the fix of each need of a quarter of the total or more, the largest first
+    fixes = [fix for _, size, fix in sorted(parts, key=lambda part: -part[1]) if size >= sum(needs.values()) / 4]
     if problem := beyond_memory(needs, f"lower {' or '.join(fixes)}"):
         raise FinetuneError(problem)
 
