@@ -20,9 +20,8 @@ interleave) and no validation. Steps/s over the steps after the warm-up (whole e
   (b) short epochs: the sample data's 258 train clips (8 steps an epoch at batch 32, 4 workers: a new
       epoch every 8 steps, served by the same persistent workers; before them, the workers started again);
 with the skipped steps by cause (GradScaler's overflows, non-finite steps); on a GPU (a) again with the config's
-own workers (ssv2.yaml: 8), with batches copied from ordinary memory (--data.pin_memory false, "unpinned") and
-with batches pinned by the training thread instead of torch's pinning thread (dataloader.PIN_THREAD, "pin, no
-thread"; each at most 1,000 steps). Before the fits, the fit's train loader alone (no model) on the same shards and
+own workers (ssv2.yaml: 8), and with batches copied from ordinary memory (--data.pin_memory false, "unpinned"; at
+most 1,000 steps). Before the fits, the fit's train loader alone (no model) on the same shards and
 workers: the batches/s it gives is the most steps/s the fit could reach with them. Then the bare step fed by
 that loader (long epochs; on a GPU with pinned memory and without): near the bare step, Lightning's machinery is
 what the fit adds; near the fit, the loader's hand-over in the training process is. On the CPU also the issue's CPU
@@ -72,7 +71,6 @@ sys.path.insert(0, str(ROOT))
 
 from bench.machine import describe_machine  # noqa: E402
 from data_pipeline.datamodule import ShardDataModule  # noqa: E402
-from data_pipeline import dataloader  # noqa: E402
 from data_pipeline.dataloader import WORKER_PRIORITIES  # noqa: E402
 from data_pipeline.dataset import SequenceDataset, shard_set  # noqa: E402
 from data_pipeline.shard_format import MANIFEST_FILE, ShardDirError, read_manifest  # noqa: E402
@@ -86,7 +84,7 @@ LONG_EPOCH_COPIES = 63  # 63 × 258 train clips: 126 batches of 32 per worker, 5
 WARM_UP = 3  # bare steps before the timing: compiling and CUDA-graph recording happen here
 FIT_WARM_UP = 20  # fit steps before the timing (rounded up to whole epochs for short epochs)
 FED_STEPS = 500  # at most, timed steps of the bare step fed by the loader (each run compiles the step anew)
-VARIANT_STEPS = 1000  # at most, steps of the unpinned fit and of the one pinned by the training thread
+VARIANT_STEPS = 1000  # at most, steps of the unpinned fit
 QUEUE_PROBE = 64  # at most, the steps the GPU is seen to have queued (a fit step launches ~80 kernels and 2 graphs)
 EARLY_STEPS = 200  # the timed steps a fit's host times are first shown for, then the rest (do steps slow down?)
 PROFILED_STEPS = 10  # bare steps profiled after the timed ones (a GPU): the device's busy time a step
@@ -433,11 +431,10 @@ def fit_warm_up(per_epoch: int, total: int) -> int:
 
 
 def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max_steps: int, precision: str,
-             log_every: int, root: Path, device: torch.device, diagnose: bool = False, pin: str = "thread") -> dict:
+             log_every: int, root: Path, device: torch.device, diagnose: bool = False, pinned: bool = True) -> dict:
     """`hauwm pretrain fit` (model.cli's LightningCLI) on one device → steps/s after the warm-up and more; with
-    `diagnose`, StepDiagnosis's findings too (its windows slow the fit: its steps/s is not a figure). `pin`: who
-    copies batches into pinned memory, torch's pinning "thread" (the default) or the "training thread"
-    (dataloader.PIN_THREAD False); "off": nobody (--data.pin_memory false)."""
+    `diagnose`, StepDiagnosis's findings too (its windows slow the fit: its steps/s is not a figure); `pinned`
+    False: --data.pin_memory false."""
     reset(device)
     args = ["fit", "--config", str(config), "--data.shards", str(shards), "--data.num_workers", str(workers),
             "--data.worker_priority", worker_priority,
@@ -445,14 +442,10 @@ def real_fit(config: Path, shards: Path, workers: int, worker_priority: str, max
             "--trainer.log_every_n_steps", str(log_every),
             "--trainer.strategy", "auto", "--trainer.limit_val_batches", "0", "--trainer.enable_progress_bar",
             "false", "--trainer.enable_model_summary", "false", "--trainer.default_root_dir", str(root),
-            "--trainer.callbacks+=bench_gpu.StepTimer"] + (["--data.pin_memory", "false"] if pin == "off" else [])
+            "--trainer.callbacks+=bench_gpu.StepTimer"] + ([] if pinned else ["--data.pin_memory", "false"])
     if diagnose:
         args.append("--trainer.callbacks+=bench_gpu.StepDiagnosis")
-    dataloader.PIN_THREAD = pin != "training thread"
-    try:
-        cli = lightning_cli(args)
-    finally:
-        dataloader.PIN_THREAD = True
+    cli = lightning_cli(args)
     # the callbacks are instances of the module `bench_gpu` that LightningCLI imported, not of this `__main__`
     by_name = {type(callback).__name__: callback for callback in cli.trainer.callbacks}
     timer = by_name["StepTimer"]
@@ -569,25 +562,22 @@ def main() -> None:
     per_epoch = len(SequenceDataset(shard_set(shards, "train"), batch_size=batch_size, seq_len=fit_length,
                                     k_max=k_max, num_workers=workers))  # short epochs: warm-up + about half as many
     short_steps = whole_epochs(FIT_WARM_UP, per_epoch) + whole_epochs(fit_steps // 2, per_epoch)  # timed steps
-    runs = [("(a) long epochs", long_epochs, workers, fit_steps, "thread")]  # (label, shards, workers, steps, pin)
+    runs = [("(a) long epochs", long_epochs, workers, fit_steps, True)]  # (label, shards, workers, steps, pinned)
     if not gpu:
-        runs.append(("(a) long epochs", long_epochs, 0, fit_steps, "thread"))
-    runs.append(("(b) short epochs", shards, workers, short_steps, "thread"))
+        runs.append(("(a) long epochs", long_epochs, 0, fit_steps, True))
+    runs.append(("(b) short epochs", shards, workers, short_steps, True))
     config_workers = loaded["data"]["num_workers"]
     if gpu and config_workers != workers:  # what a user's fit gets (ssv2.yaml: 8)
-        runs.append(("(a) long epochs", long_epochs, config_workers, fit_steps, "thread"))
-    if gpu:  # batches copied from ordinary memory (--data.pin_memory false): one bench showed the fed step faster;
-        #      and pinned by the training thread, without torch's pinning thread beside it (a 1-thread bench's pinned
-        #      fit spent 3.8 ms a step more inside its steps than its unpinned one)
-        runs.append(("(a) long, unpinned", long_epochs, workers, min(fit_steps, VARIANT_STEPS), "off"))
-        runs.append(("(a) pin, no thread", long_epochs, workers, min(fit_steps, VARIANT_STEPS), "training thread"))
+        runs.append(("(a) long epochs", long_epochs, config_workers, fit_steps, True))
+    if gpu:  # batches copied from ordinary memory (--data.pin_memory false): one bench showed the fed step faster
+        runs.append(("(a) long, unpinned", long_epochs, workers, min(fit_steps, VARIANT_STEPS), False))
 
     reference_mode = compile_setting if gpu else "off"
     reference = bare.get((fit_length, reference_mode))
     print(f"\n{'loader alone':<18} {'workers':>7} {'batches/epoch':>13} {'batches/s':>10} {'× bare':>9}"
           "  (the fit's train loader, no model, batches copied to the device)")
-    for label, directory, fit_workers, max_steps, pin in runs:
-        if fit_workers == 0 or pin != "thread":  # the loader alone copies as the pinned fit does
+    for label, directory, fit_workers, max_steps, pinned in runs:
+        if fit_workers == 0 or not pinned:  # the loader alone copies as the pinned fit does
             continue
         result = loader_alone(directory, loaded["data"], fit_workers, worker_priority, max_steps, device)
         ratio = f" {result['batches_per_s'] / reference['steps_per_s']:8.2f}×" if reference is not None else ""
@@ -612,9 +602,9 @@ def main() -> None:
     ratios: dict[tuple[str, int], list[float]] = {}  # (run, workers) → each round's fit / bare steps/s
     anatomies = []  # (run, workers, step_anatomy) of every fit
     for round_index in range(rounds):
-        for index, (label, directory, fit_workers, max_steps, pin) in enumerate(runs):
+        for index, (label, directory, fit_workers, max_steps, pinned) in enumerate(runs):
             result = real_fit(config, directory, fit_workers, worker_priority, max_steps, settings["precision"],
-                              log_every, work / f"fit-{round_index}-{index}", device, pin=pin)
+                              log_every, work / f"fit-{round_index}-{index}", device, pinned=pinned)
             ratio_text = ""
             if reference is not None:
                 after = reference if gpu else bare_steps(settings, itertools.cycle(fit_batches), "off", steps,

@@ -133,7 +133,6 @@ class ResumableDataLoader(DataLoader):
     epoch_ended: Callable[[], bool] = staticmethod(lambda: False)  # the epoch's last batch is done (a limit too)
     worker_priority: str = "normal"  # set by `make_dataloader`, for the stalled-worker message
     slots: BatchSlots | None = None  # where this loader's workers place their batches (`make_dataloader`)
-    pin_on_take: bool = False  # copy each slot into pinned memory on this thread, not torch's (`PIN_THREAD`)
     _stream: Iterator[WorkerItem] | None = None  # torch's iterator of a continuous dataset, over the epochs
     _stream_at: tuple[int, int] = (-1, 0)  # the (epoch, batches of it) `_stream` gives next
 
@@ -192,7 +191,7 @@ class ResumableDataLoader(DataLoader):
         batch = self._fetch(lambda: next(batches, None))
         if isinstance(batch, LoaderError):
             raise batch
-        return batch.take(pin=self.pin_on_take) if isinstance(batch, SlotBatch) else batch
+        return batch.take() if isinstance(batch, SlotBatch) else batch
 
     def _raising_worker_errors(self, batches: Iterator[WorkerItem]) -> Iterator[dict]:
         while (batch := self._next_batch(batches)) is not None:
@@ -278,9 +277,6 @@ def _death_cause(exitcode: int | None) -> str:
 
 
 PREFETCH = 2  # batches each worker has in flight (torch's default prefetch_factor)
-# pinned batches from workers: copied out of their slots by torch's pinning thread (True), or by the training thread
-# as it takes each one (False: no second thread in the training process; bench_gpu.py times a fit both ways)
-PIN_THREAD = True
 
 
 def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0, worker_priority: str = "normal",
@@ -291,16 +287,15 @@ def make_dataloader(dataset: SequenceDataset, timeout: float = 600.0, worker_pri
     scheduling class (`check_worker_priority`), and each places its batches in PREFETCH + 1 shared-memory slots
     (batch_slots.py: one more than it has in flight, so the next is free by the time it is asked for). Batches
     are pinned for the copy to a GPU where `pin_memory` says so (None: where CUDA is available), by torch's pinning
-    thread or the training thread (`PIN_THREAD`)."""
+    thread (on the training thread they were far slower: bench/README.md, the 7th GPU session)."""
     check_worker_priority(worker_priority)
     workers = dataset.num_workers > 0
-    pin = torch.cuda.is_available() if pin_memory is None else pin_memory
     loader = ResumableDataLoader(dataset, batch_size=None, num_workers=dataset.num_workers,
                                  worker_init_fn=partial(init_worker, worker_priority, os.getpid()),
                                  persistent_workers=workers, timeout=timeout if workers else 0,
-                                 pin_memory=pin and (PIN_THREAD or not workers),
+                                 pin_memory=torch.cuda.is_available() if pin_memory is None else pin_memory,
                                  prefetch_factor=PREFETCH if workers else None)
-    loader.worker_priority, loader.pin_on_take = worker_priority, pin and workers and not PIN_THREAD
+    loader.worker_priority = worker_priority
     if workers:  # the context torch starts the workers with (its default: the platform's)
         loader.slots = dataset.share_slots(PREFETCH + 1, loader.multiprocessing_context or multiprocessing.get_context())
     return loader

@@ -10,7 +10,6 @@ import re
 import shutil
 import signal
 import tarfile
-import threading
 import time
 import warnings
 from collections import Counter
@@ -23,7 +22,6 @@ from scipy.stats import chisquare
 from torch.utils.data import DataLoader
 
 from data_pipeline import SetEpoch, ShardDataModule
-from data_pipeline import dataloader
 from data_pipeline.dataloader import ResumableDataLoader, make_dataloader
 from data_pipeline.dataset import LoaderError, SequenceDataset, ShardSet, shard_set
 from data_pipeline.shard_format import ShardDirError, decode_frames, read_samples
@@ -299,26 +297,6 @@ def test_batches_are_pinned_where_a_gpu_is_there_unless_turned_off(built_shards,
     module.setup("fit")
     expected = torch.cuda.is_available() if pin_memory is None else False
     assert module.train_dataloader().pin_memory is expected and module.val_dataloader().pin_memory is expected
-
-
-def test_without_the_pinning_thread_the_training_thread_pins_each_batch_as_it_takes_it(built_shards, monkeypatch):
-    """PIN_THREAD False (bench_gpu.py's other way): no torch pinning thread; each slot is copied into pinned memory
-    on the thread that takes the batch. (Pinning itself needs CUDA: a stand-in records where it runs.)"""
-    pinned_on = []
-
-    def pin_memory(tensor, *args, **kwargs):
-        pinned_on.append(threading.current_thread())
-        return tensor.clone()
-
-    monkeypatch.setattr(dataloader, "PIN_THREAD", False)
-    monkeypatch.setattr(torch.Tensor, "pin_memory", pin_memory)
-    dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=1)
-    loader = make_dataloader(dataset, pin_memory=True)
-    assert loader.pin_memory is False and loader.pin_on_take
-    batches = iter(loader)
-    batch, second = next(batches), next(batches)
-    assert pinned_on == [threading.main_thread()] * 2
-    assert batch["frames"].shape == (2, 8, 3, 64, 64) and len(second["id"]) == 2
 
 
 def test_persistent_workers_follow_a_resume_position_set_between_epochs(built_shards):
