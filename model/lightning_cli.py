@@ -47,6 +47,7 @@ from model.interrupt import FitInterrupted, ResumeNotice
 from model.module import PretrainModule, refuse_other_size
 from model.networks import IMAGE_SHAPE
 from model.progress import StepProgressBar
+from model.rendezvous import RendezvousWatch
 from model.rssm import RSSMState
 from model.sigterm import AgreedSigterm
 from model.world_model import WorldModel
@@ -512,6 +513,7 @@ class PretrainCLI(LightningCLI):
 
     def before_validate(self) -> None:
         refuse_nodes_without_a_cluster(self.trainer)
+        self.watch_rendezvous()
 
     def before_fit(self) -> None:
         refuse_nodes_without_a_cluster(self.trainer)
@@ -539,6 +541,15 @@ class PretrainCLI(LightningCLI):
         callbacks.append(self.notice)  # with or without a progress bar
         if type(self.trainer.strategy.checkpoint_io) is TorchCheckpointIO:  # a user's own plugin stays
             self.trainer.strategy.checkpoint_io = AtomicCheckpointIO()
+        self.watch_rendezvous()
+
+    def watch_rendezvous(self) -> None:
+        """A job of several ranks: say while this one waits for the others, and what to do if they never all come
+        (model/rendezvous.py), until the call ends."""
+        if self.trainer.world_size > 1:
+            timeout = getattr(self.trainer.strategy, "_timeout", None)  # DDPStrategy's `timeout` argument
+            self.held.enter_context(RendezvousWatch(f"hauwm pretrain {self.subcommand}", self.trainer.global_rank,
+                                                    self.trainer.world_size, self.trainer.num_nodes, timeout))
 
     def lock_checkpoint_directory(self, directory: Path) -> None:
         """Refuse a fit into a checkpoint directory another fit is writing: both wrote last.ckpt through the same

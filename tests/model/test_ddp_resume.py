@@ -6,12 +6,14 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import lightning as L
+import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
@@ -133,6 +135,30 @@ def test_a_job_whose_ranks_a_launcher_started_is_refused_by_every_rank_when_its_
         assert f"{checkpoints} is in use by another fit (pid {os.getpid()}): wait for it to end" in stderr, stderr[-3000:]
         assert "Traceback" not in stderr
     assert [path.name for path in (tmp_path / "run").rglob("*")] == ["checkpoints", ".fit.lock"]  # nothing of its own
+
+
+@pytest.mark.parametrize("node_rank", [0, 1])
+def test_a_node_that_never_comes_is_said_while_the_ranks_wait_and_ends_the_job_with_what_to_do(built_shards, tmp_path,
+                                                                                            node_rank):
+    """Node 0 waited for a node 1 that was never started (node 1 for a node 0 never started) without a word until
+    DDP's timeout (30 minutes by default), then ended with torch's DistStoreError (DistNetworkError), read as a rank
+    lost in training. Here the first notice comes after 1 s and DDP's timeout is 4 s."""
+    command, env = ddp_fit_command(built_shards, tmp_path, [], ("--trainer.devices", "1", "--trainer.num_nodes", "2",
+                                                                "--trainer.strategy", "DDPStrategy",
+                                                                "--trainer.strategy.timeout", "0:00:04"))
+    notice_soon = "import sys; from model import rendezvous; rendezvous.NOTICE_AFTER_S = 1; from model.cli import main; "
+    command[1:3] = ["-c", notice_soon + "sys.exit(main())"]  # for `-m model.cli`
+    port = free_port()
+    env = {**env, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "NODE_RANK": str(node_rank)}
+    done = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr[-3000:]
+    assert re.search(rf"hauwm pretrain fit: rank {node_rank} has waited 0:00:0[1-3] for the job's 2 ranks to meet at "
+                     rf"127.0.0.1:{port} \(DDP gives up after 0:00:04\): if a node is not running yet, start the same "
+                     r"`hauwm pretrain fit` on each of the 2 nodes \(NODE_RANK 0 to 1", done.stderr), done.stderr[-3000:]
+    assert (f"hauwm pretrain fit: error: rank {node_rank}: the job's 2 ranks did not all meet at 127.0.0.1:{port} "
+            "within DDP's timeout (0:00:04; torch: ") in done.stderr
+    assert "lost the other ranks" not in done.stderr and "Traceback" not in done.stderr
+    assert not [path for path in (tmp_path / "run").rglob("*") if path.is_file()]  # no lock, log or config left
 
 
 def test_sigterm_to_every_rank_at_different_points_stops_them_after_the_same_step(built_shards, tmp_path):
