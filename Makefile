@@ -74,16 +74,16 @@ test: install
 test-all: install
 	$(BIN)/python -m pytest -m "slow or not slow"
 
-# Every test on the oldest torch pyproject.toml admits (torch 2.11, torchvision 0.26: the GPU machines' image), in
+# Every test on the oldest torch pyproject.toml admits (torch 2.11: the GPU machines' image), in
 # .venv-floor; constraints.txt's other versions, less those that pin torch's own (triton, CUDA, setuptools < 82).
 # Downloads about 3 GB of torch 2.11 CUDA wheels from PyPI the first time (1.5 minutes here); then 13–21 minutes of tests on 2 cores.
 FLOOR := .venv-floor
 test-floor:
 	@$(MAKE) --no-print-directory system-deps
 	test -x $(FLOOR)/bin/python || $(PYTHON) -m venv $(FLOOR)
-	grep -v -E '^(torch|torchvision|triton|nvidia-.*|cuda-.*|setuptools)==' constraints.txt > $(FLOOR)/constraints.txt
+	grep -v -E '^(torch|triton|nvidia-.*|cuda-.*|setuptools)==' constraints.txt > $(FLOOR)/constraints.txt
 	$(FLOOR)/bin/python -m pip install --quiet --upgrade pip
-	$(FLOOR)/bin/python -m pip install --quiet torch==2.11.0 torchvision==0.26.0 -e ".[test]" -c $(FLOOR)/constraints.txt
+	$(FLOOR)/bin/python -m pip install --quiet torch==2.11.0 -e ".[test]" -c $(FLOOR)/constraints.txt
 	$(FLOOR)/bin/python -m pytest -m "slow or not slow"
 
 # speed figures (minutes); the paper-claim, learning and world-model action checks take ~3, ~25 and ~10 minutes: `make bench-checks`
