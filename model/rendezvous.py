@@ -72,7 +72,8 @@ class RendezvousWatch:
             if waited >= notice_at:
                 print(f"{self.command}: rank {self.rank} has waited {duration(waited)} for the job's {self.world_size} "
                       f"ranks to meet at {self.where()} (DDP gives up after {duration(self.timeout.total_seconds())}): "
-                      f"if a node is not running yet, {self.fix()}", file=sys.stderr, flush=True)
+                      f"if a {'node' if self.nodes > 1 else 'rank'} is not running yet, {self.fix()}", file=sys.stderr,
+                      flush=True)
                 noticed, notice_at = True, notice_at + NOTICE_EVERY_S
 
     def __enter__(self) -> RendezvousWatch:
