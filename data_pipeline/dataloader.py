@@ -180,6 +180,7 @@ class ResumableDataLoader(DataLoader):
 
     def _started(self) -> Iterator[WorkerItem]:
         """torch's iterator, from workers told the dataset's position (started the first time, resumed after)."""
+        self.dataset.begin_stream()
         batches = self._fetch(super().__iter__)
         if self.num_workers > 0:
             _defer_worker_deaths()

@@ -16,8 +16,9 @@ The data position — the epoch and the batches of it already trained on — liv
 the dataset creates before any worker starts. The main process writes it: `set_epoch` (the `SetEpoch` callback
 calls it; Lightning does not call `set_epoch` on an IterableDataset) and `resume_at` (from
 `ResumableDataLoader.load_state_dict`). Every `__iter__` reads it, in the main process or in a worker (how the
-workers, started once, follow it: `dataloader.py`). The training set is `continuous`: its workers' iterators go
-on into the next epoch by themselves.
+workers, started once, follow it: `dataloader.py`); a worker of a stream that a ResumableDataLoader began reads the
+copy `begin_stream` made as the stream began, since it may start after the position moved on. The training set is
+`continuous`: its workers' iterators go on into the next epoch by themselves.
 
 An exception inside a worker (an unreadable shard, frames that do not decode) becomes a `LoaderError` naming
 the worker and the shard it was reading (each worker notes it in a second shared tensor), handed to the main
@@ -266,8 +267,11 @@ class SequenceDataset(IterableDataset):
         self.frame_size = shards.frame_size
         self._slots: BatchSlots | None = None  # where workers place their batches (share_slots)
         # shared with the DataLoader workers (created before they start): [epoch, batches of it already trained
-        # on per rank (a resumed run)], written by the main process, read by every `__iter__`
+        # on per rank (a resumed run)], written by the main process; and the position the workers' iterators start
+        # from, copied from it by `begin_stream` as a ResumableDataLoader starts them (they may start after the
+        # position moved on; −1: no stream begun, as under a plain DataLoader, whose workers read the position)
         self._position = torch.zeros(2, dtype=torch.int64).share_memory_()
+        self._stream_start = torch.full((2,), -1, dtype=torch.int64).share_memory_()
         # per worker, the index in `urls` of the shard it is reading (-1: none yet), for error messages
         self._reading = torch.full((self.workers,), -1, dtype=torch.int64).share_memory_()
 
@@ -285,6 +289,13 @@ class SequenceDataset(IterableDataset):
     def resume_at(self, epoch: int, batches: int) -> None:
         """The next iterator continues epoch `epoch` after its first `batches` batches (per rank)."""
         self._position[0], self._position[1] = epoch, batches
+
+    def begin_stream(self) -> None:
+        """The workers' next iterators start from the position as it is now: a worker that starts after the
+        position moved on (the first start of persistent workers is not waited for; a resumed epoch can end before
+        a late worker has read the position, and SetEpoch then moves it to the next epoch) still plays its part of
+        this stream."""
+        self._stream_start.copy_(self._position)
 
     def reading(self, worker: int) -> str:
         """The shard worker `worker` of this rank is reading (or read last)."""
@@ -342,7 +353,9 @@ class SequenceDataset(IterableDataset):
         batches, so in the epochs after, worker p is asked right after the stream before its own again: it
         keeps playing stream (p + skip) mod W, from the epoch's first batch."""
         _, _, process_worker, _ = pytorch_worker_info()
-        first_epoch, skip = self.epoch, self.skip_batches
+        begun = get_worker_info() is not None and int(self._stream_start[0]) >= 0  # a worker of a begun stream
+        position = self._stream_start if begun else self._position
+        first_epoch, skip = int(position[0]), int(position[1])
         stream = (process_worker + skip) % self.workers
         # batches this stream gave before the resume: of batches 0..skip−1, those i with i mod W == stream
         skipped = (skip - stream + self.workers - 1) // self.workers

@@ -13,6 +13,7 @@ import tarfile
 import time
 import warnings
 from collections import Counter
+from collections.abc import Callable
 
 import lightning
 import numpy as np
@@ -21,7 +22,7 @@ import torch
 from scipy.stats import chisquare
 from torch.utils.data import DataLoader
 
-from data_pipeline import SetEpoch, ShardDataModule
+from data_pipeline import SetEpoch, ShardDataModule, dataloader
 from data_pipeline.dataloader import ResumableDataLoader, make_dataloader
 from data_pipeline.dataset import LoaderError, SequenceDataset, ShardSet, shard_set
 from data_pipeline.shard_format import ShardDirError, decode_frames, read_samples
@@ -307,6 +308,42 @@ def test_persistent_workers_follow_a_resume_position_set_between_epochs(built_sh
     for done in (3, 4, 0):
         loader.load_state_dict({"epoch": 3, "batches": done})
         assert summary(loader) == whole_epoch[done:]
+
+
+def starting_late(worker_init: Callable) -> Callable:
+    """`worker_init` for `make_dataloader`, with every worker but worker 0 starting 2 s late (a busy machine, the
+    spawn start method, idle priority)."""
+
+    def start(priority: str, training_process: int, worker: int) -> None:
+        if worker > 0:
+            time.sleep(2)
+        worker_init(priority, training_process, worker)
+
+    return start
+
+
+def test_a_worker_that_starts_late_reads_the_position_its_stream_began_at(built_shards, monkeypatch):
+    """A resume in the last round of an epoch: its one batch left comes from worker 0 before worker 1 has started
+    (worker 1's stream has none left), and the next epoch's set_epoch then moved the position. Worker 1, starting
+    late, read that one and played worker 0's stream in every epoch after, so half the clips came twice and half never
+    (found by a review, 2026-11-27; a real fit did the same)."""
+    def run(resume_at: int | None = None) -> list[list[str]]:
+        dataset = SequenceDataset(shard_set(built_shards, "train"), batch_size=2, seq_len=8, num_workers=2, seed=3,
+                                  continuous=True)
+        loader = make_dataloader(dataset)
+        if resume_at is not None:
+            loader.load_state_dict({"epoch": 0, "batches": resume_at})  # as a resumed fit's checkpoint says
+        epochs = []
+        for epoch in (0, 1, 2):
+            if epoch:
+                dataset.set_epoch(epoch)  # SetEpoch, at the next epoch's start
+            epochs.append([clip for batch in loader for clip in batch["id"]])
+        return epochs
+
+    unbroken = run()  # its workers start long before the epoch's end
+    monkeypatch.setattr(dataloader, "init_worker", starting_late(dataloader.init_worker))
+    last_round = len(unbroken[0]) // 2 - 1  # batches of 2 clips: the epoch's last batch is left
+    assert run(resume_at=last_round) == [unbroken[0][-2:], unbroken[1], unbroken[2]]
 
 
 def test_pipe_urls_read_the_same_data(built_shards):
