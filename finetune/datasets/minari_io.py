@@ -144,7 +144,9 @@ HAUWM_FIELDS = {"task": (lambda v: isinstance(v, str), "a task's name"),
                 "action_repeat": (lambda v: is_count(v) and v >= 1, "a whole number ≥ 1"),
                 "fast_render": (lambda v: isinstance(v, bool), "true or false"),
                 "has_success": (lambda v: isinstance(v, bool), "true or false"),
-                "complete": (lambda v: isinstance(v, bool), "true or false")}
+                "complete": (lambda v: isinstance(v, bool), "true or false"),
+                "merged": (lambda v: isinstance(v, list) and all(isinstance(i, str) for i in v), "a list of IDs"),
+                "parts": (lambda v: isinstance(v, list) and all(isinstance(i, str) for i in v), "a list of IDs")}
 
 
 def read_metadata(data: Path) -> dict[str, Any]:
@@ -595,6 +597,27 @@ def refuse_replayed(source_ids: list[str], settings: list[dict[str, Any]]) -> No
                                f"collect {dataset_id} again with another --seed")
 
 
+def merged_parts(dataset_id: str, settings: dict[str, Any]) -> list[str]:
+    """The datasets whose episodes `dataset_id` holds: itself, or for a merge the parts it records (every dataset it
+    was merged from, through merges of merges; a merge written before "parts" records its direct sources)."""
+    if settings.get("source") != "merge":
+        return [dataset_id]
+    return list(settings.get("parts", settings.get("merged", [dataset_id])))
+
+
+def refuse_overlapping(source_ids: list[str], settings: list[dict[str, Any]]) -> list[str]:
+    """The parts of a merge of `source_ids` (`merged_parts`), or a DatasetError if two sources hold the same part's
+    episodes (a merge and one of its parts, two merges sharing one)."""
+    holder: dict[str, str] = {}  # part -> the source holding it
+    for dataset_id, written in zip(source_ids, settings):
+        for part in merged_parts(dataset_id, written):
+            if (first := holder.setdefault(part, dataset_id)) != dataset_id:
+                raise DatasetError(f"the episodes of {part} are in {first} and in {dataset_id}: the merge would hold "
+                                   "them twice, over-weighting them in every batch; leave one of the two out, or merge "
+                                   f"the parts of {first if first != part else dataset_id} that are not in the other")
+    return list(holder)
+
+
 def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
     """Concatenate the episodes of `source_ids` into a new dataset `out_id` (e.g. medium replay + expert).
 
@@ -610,6 +633,7 @@ def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
                            "episodes that often, over-weighting them in every batch; name each dataset once")
     datasets = [open_dataset(dataset_id) for dataset_id in source_ids]
     settings = [hauwm_metadata(dataset) for dataset in datasets]
+    parts = refuse_overlapping(source_ids, settings)
     refuse_replayed(source_ids, settings)
     agreed = {}  # what the sources that record it agree on, kept even where a source made elsewhere records nothing
     for key in ("task", "action_repeat", "fast_render", "image_size"):  # what offline RL and imitation check
@@ -635,7 +659,7 @@ def merge_datasets(source_ids: list[str], out_id: str, progress: bool = True):
                 yield episode
 
     shared = {key: value for key, value in settings[0].items() if all(s.get(key) == value for s in settings[1:])}
-    merged = {**shared, **agreed, "source": "merge", "merged": list(source_ids)}
+    merged = {**shared, **agreed, "source": "merge", "merged": list(source_ids), "parts": parts}
     dataset = write_dataset(out_id, episodes(), merged, jpeg=jpeg, description=f"merge of {', '.join(source_ids)}")
     dataset.storage.update_metadata({"combined_datasets": list(source_ids)})
     return dataset

@@ -50,10 +50,10 @@ class Summary:
         if "normalised_return" in s:
             random_return, expert_return = REFERENCE_RETURNS[self.task]
             full = episode_time_limit(self.task, self.action_repeat)
-            short = sum(length < full for length in self.lengths)
-            caveat = ("" if not short else f"; episodes of {per_episode} steps, not the suite's {full}: not comparable"
-                      if high < full else f"; {short} of {len(self.lengths)} episodes shorter than the suite's {full} "
-                      f"steps ({low}-{high}): not comparable")
+            other = sum(length != full for length in self.lengths)  # cut short, or run on past the suite's limit
+            caveat = ("" if not other else f"; episodes of {per_episode} steps, not the suite's {full}: not comparable"
+                      if other == len(self.lengths) else f"; {other} of {len(self.lengths)} episodes of another length "
+                      f"than the suite's {full} steps ({low}-{high}): not comparable")
             lines.append(f"normalised      {s['normalised_return']:.3f} (Table 4: random {random_return:g}, "
                          f"expert {expert_return:g}{caveat})")
         if "success_rate" in s:

@@ -525,6 +525,22 @@ def test_a_merge_that_names_a_dataset_twice_is_refused_not_doubled(random_episod
     assert "test/merged-v0" not in list_datasets()
 
 
+def test_a_merge_with_a_dataset_already_in_one_of_its_sources_is_refused_not_doubled(random_episodes, capsys):
+    """`merge medexp expert`, medexp being medium + expert: the expert episodes went in twice (found by a review)."""
+    write_dataset("test/medium-v0", iter(random_episodes[:1]), {"task": TASK, "source": "random", "seed": 0})
+    write_dataset("test/expert-v0", iter(random_episodes[1:2]), {"task": TASK, "source": "random", "seed": 1})
+    write_dataset("test/other-v0", iter(random_episodes[2:3]), {"task": TASK, "source": "random", "seed": 2})
+    assert main(["merge", "test/medium-v0", "test/expert-v0", "--out", "test/medexp-v0", "--no-progress"]) == 0
+    assert main(["merge", "test/medexp-v0", "test/expert-v0", "--out", "test/twice-v0", "--no-progress"]) == 2
+    assert ("the episodes of test/expert-v0 are in test/medexp-v0 and in test/expert-v0: the merge would hold them "
+            "twice") in capsys.readouterr().err
+    assert main(["merge", "test/other-v0", "test/medexp-v0", "--out", "test/all-v0", "--no-progress"]) == 0
+    assert main(["merge", "test/all-v0", "test/medium-v0", "--out", "test/twice-v0", "--no-progress"]) == 2  # nested
+    assert "the episodes of test/medium-v0 are in test/all-v0 and in test/medium-v0" in capsys.readouterr().err
+    assert "test/twice-v0" not in list_datasets()
+    assert len(load_episodes("test/all-v0")) == 3
+
+
 def test_a_merge_of_two_datasets_collected_alike_is_refused_not_doubled(random_episodes, capsys):
     """Following the advice after a Ctrl-C (collect more under another ID, merge them) with the same command played
     the same episodes again: the merge held each twice, byte for byte, without a word."""
@@ -713,14 +729,21 @@ def test_a_directory_not_named_as_a_dataset_is_listed_apart_not_a_traceback(rand
         load_episodes("test/typo-v0")
 
 
-def test_the_normalised_return_of_episodes_shorter_than_the_suites_says_it_is_not_comparable():
-    """Episodes of 30, 30 and 500 steps: only the longest was looked at, and the caveat was left out."""
+def test_the_normalised_return_of_episodes_of_another_length_than_the_suites_says_it_is_not_comparable():
+    """Episodes of 30, 30 and 500 steps: only the longest was looked at, and the caveat was left out; episodes longer
+    than the suite's (a larger time limit) had none either."""
     from finetune.datasets.summary import Summary
 
     summary = Summary(TASK)
     for steps in (30, 30, 500):
         summary.add({"reward": np.ones(steps + 1, np.float32)})
-    assert "2 of 3 episodes shorter than the suite's 500 steps (30-500): not comparable" in "\n".join(summary.lines())
+    assert "2 of 3 episodes of another length than the suite's 500 steps (30-500): not comparable" in \
+        "\n".join(summary.lines())
+    summary = Summary(TASK)
+    for steps in (500, 1000):
+        summary.add({"reward": np.ones(steps + 1, np.float32)})
+    assert "1 of 2 episodes of another length than the suite's 500 steps (500-1000): not comparable" in \
+        "\n".join(summary.lines())
     summary = Summary(TASK)
     for steps in (10, 30):  # all shorter, of two lengths: it said "episodes of 30 steps"
         summary.add({"reward": np.ones(steps + 1, np.float32)})
