@@ -260,12 +260,16 @@ class PretrainModule(L.LightningModule):
         world_model_opt.zero_grad()
         self.manual_backward(terms["loss"])
         world_model_opt.step()  # on_before_optimizer_step unscales, clips, and flags a non-finite step (self._skip)
+        # over the ranks, in one all-reduce: λ's constraint, and whether any rank's loss was not finite (a NaN on one
+        # rank makes every rank's step a skip, and every rank must count it as non-finite, not as the scaler's)
+        nonfinite_loss, k_disagreement = mean_over_ranks(torch.stack(
+            [(~torch.isfinite(terms["loss"])).float(), terms["k_disagreement"].detach().float()]))
         # skipped with a finite loss under 16-mixed: GradScaler's float16 overflow at its current scale
-        by_scaler = self._skip & torch.isfinite(terms["loss"]) & (self._grad_scaler() is not None)
+        by_scaler = self._skip & (nonfinite_loss == 0) & (self._grad_scaler() is not None)
         self.scaler_skips += by_scaler
         self.nonfinite_steps += self._skip & ~by_scaler
         if self.hcu_enabled:
-            self.dual_step(dual_opt.optimizer, mean_over_ranks(terms["k_disagreement"]), self._skip)
+            self.dual_step(dual_opt.optimizer, k_disagreement, self._skip)
         if log_now:  # every trainer.log_every_n_steps: reading the values waits for the GPU
             logged = {f"train/{name}": value.detach().clone() for name, value in terms.items()}
             logged["train/log_lambda"] = self.log_lambda.detach().clone()

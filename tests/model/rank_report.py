@@ -39,8 +39,30 @@ class RankReport(L.Callback):
         self.out_dir.mkdir(parents=True, exist_ok=True)
         report = {"rank": trainer.global_rank, "world_size": trainer.world_size, "global_step": trainer.global_step,
                   "batches": self.batches, "broadcasts": self.broadcasts, "weights_sha256": digest.hexdigest(),
-                  "lambda": float(pl_module.hcu_weight()), "skipped": int(pl_module.scaler_skips + pl_module.nonfinite_steps)}
+                  "lambda": float(pl_module.hcu_weight()), "scaler_skips": int(pl_module.scaler_skips),
+                  "nonfinite_steps": int(pl_module.nonfinite_steps)}
         (self.out_dir / f"rank{trainer.global_rank}.json").write_text(json.dumps(report))
+
+
+class NanOnRankOne(L.Callback):
+    """Rank 1's third step (global_step 2) runs with a NaN in one weight, so its loss alone is not finite; the weight
+    is put back after the step (which every rank skips: the all-reduced gradients are not finite)."""
+
+    def __init__(self) -> None:
+        self.saved: torch.Tensor | None = None
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if trainer.global_step == 2 and trainer.global_rank == 1:
+            weight = next(pl_module.world_model.parameters())
+            self.saved = weight.detach().clone()
+            with torch.no_grad():
+                weight.view(-1)[0] = float("nan")
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if self.saved is not None:
+            with torch.no_grad():
+                next(pl_module.world_model.parameters()).copy_(self.saved)
+            self.saved = None
 
 
 class SigtermEveryRank(L.Callback):
@@ -86,3 +108,27 @@ def mean_of_two_ranks(rank: int, port: int, out: Path) -> None:
         (out / f"rank{rank}").write_text(str(mean_over_ranks(torch.tensor(rank + 1.0)).item()))
     finally:
         dist.destroy_process_group()
+
+
+def fp16_fit_with_a_nan_on_rank_one(rank: int, port: int, out: Path) -> None:
+    """Rank `rank` of a 2-process DDP fit over gloo (started as a launcher starts ranks) under 16-mixed, its
+    GradScaler from 256 (float16 is slow on a CPU; the plugin is given explicitly, since the Trainer would turn 16-mixed
+    into bf16-mixed on a CPU), rank 1's third step with a NaN loss (NanOnRankOne); RankReport writes its counters."""
+    from lightning.pytorch.plugins.precision import MixedPrecision
+
+    from model.config import WorldModelConfig
+    from model.module import PretrainModule
+
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE="2", NODE_RANK="0",
+                      LOCAL_RANK=str(rank), RANK=str(rank))
+    generator = torch.Generator().manual_seed(rank)
+    batches = [{"frames": torch.randint(0, 256, (2, 3, 3, 64, 64), dtype=torch.uint8, generator=generator),
+                "gaps": torch.tensor([[0, 1, 2]] * 2), "num_frames": torch.tensor([20, 20])} for _ in range(4)]
+    torch.manual_seed(0)
+    module = PretrainModule(WorldModelConfig(cnn_width=8, embed_dim=32, deter=24, stoch=6, hidden=24, ensemble=3,
+                                             temporal_dim=8))
+    precision = MixedPrecision("16-mixed", "cpu", torch.amp.GradScaler("cpu", init_scale=256.0))
+    trainer = L.Trainer(accelerator="cpu", devices=2, strategy="ddp", plugins=[precision], max_steps=len(batches),
+                        logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                        callbacks=[RankReport(str(out)), NanOnRankOne()])
+    trainer.fit(module, torch.utils.data.DataLoader(batches, batch_size=None))

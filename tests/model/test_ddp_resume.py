@@ -93,9 +93,20 @@ def test_ddp_with_the_compiled_step_takes_the_same_steps_and_ends_identical(buil
                    ("--model.compile", "default"), timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     rank0, rank1 = (json.loads((reports / f"rank{r}.json").read_text()) for r in (0, 1))
-    assert rank0["global_step"] == rank1["global_step"] == 5 and rank0["skipped"] == rank1["skipped"] == 0
+    assert rank0["global_step"] == rank1["global_step"] == 5
+    assert rank0["scaler_skips"] == rank1["scaler_skips"] == rank0["nonfinite_steps"] == rank1["nonfinite_steps"] == 0
     assert rank0["weights_sha256"] == rank1["weights_sha256"]
     assert rank0["lambda"] == rank1["lambda"] != 1.0
+
+
+def test_a_nan_loss_on_one_rank_under_16_mixed_is_a_non_finite_step_on_every_rank(tmp_path):
+    """Each rank told a GradScaler skip from a non-finite step by its own loss: a NaN loss on rank 1 alone was counted
+    as the scaler's calibration on rank 0, whose counters the logs and the checkpoint hold (found by a review)."""
+    torch.multiprocessing.spawn(rank_report.fp16_fit_with_a_nan_on_rank_one, args=(free_port(), tmp_path), nprocs=2)
+    rank0, rank1 = (json.loads((tmp_path / f"rank{rank}.json").read_text()) for rank in (0, 1))
+    assert rank0["nonfinite_steps"] == rank1["nonfinite_steps"] == 1
+    assert rank0["scaler_skips"] == rank1["scaler_skips"]
+    assert rank0["weights_sha256"] == rank1["weights_sha256"]
 
 
 def test_a_rank_that_fails_stops_the_job_with_one_line_from_each_rank(built_shards, tmp_path):
