@@ -33,6 +33,7 @@ from lightning.fabric.plugins.environments import LightningEnvironment
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint, RichProgressBar, TQDMProgressBar
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.plugins.io import TorchCheckpointIO
+from lightning.pytorch.plugins.precision import Precision
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
 from data_pipeline.datamodule import ShardDataModule
@@ -324,6 +325,12 @@ def settle_trainer(trainer, subcommand: str, resuming: bool) -> None:
                               "config that sets trainer.callbacks replaces the whole list), so this fit writes no "
                               "last.ckpt and `--ckpt_path last` cannot resume it: keep the ModelCheckpoint of "
                               "configs/pretrain/*.yaml in the list", file=sys.stderr)
+    plugins = trainer.plugins if isinstance(trainer.plugins, list) else [trainer.plugins]
+    for plugin in filter(None, plugins):  # Lightning refused the pair with a ValueError in a traceback
+        plugin_class = pydoc.locate(str(getattr(plugin, "class_path", plugin)))
+        if isinstance(plugin_class, type) and issubclass(plugin_class, Precision):
+            raise ConfigError(f"--trainer.plugins {plugin_class.__name__}: a fit's precision plugin is the one "
+                              f"--trainer.precision makes ({', '.join(PRECISIONS[::2])}); leave the plugin out")
     trainer.precision = trainer.precision or "32-true"  # None: Lightning's default
     if str(trainer.precision) not in PRECISIONS:  # half-precision weights: the step's float32 state breaks
         raise ConfigError(f"--trainer.precision {trainer.precision}: a fit runs in {', '.join(PRECISIONS[::2])} "

@@ -203,6 +203,9 @@ def test_an_old_checkpoint_with_flat_sizes_is_not_resumed_silently(built_shards,
         (["--trainer.precision", "null", "--data.k_max", "0"], "k_max (the largest frame gap) must be ≥ 1, got 0"),
         (["--trainer.accumulate_grad_batches", "2"], "accumulate_grad_batches 2: the step optimises by itself"),
         (["--trainer.gradient_clip_val", "1"], "the step clips its own gradients: set --model.grad_clip"),
+        # Lightning refused it beside the precision in a traceback ("Received both `precision=32-true` and `plugins=")
+        (["--trainer.plugins", "MixedPrecision", "--trainer.plugins.precision", "16-mixed", "--trainer.plugins.device",
+          "cpu"], "--trainer.plugins MixedPrecision: a fit's precision plugin is the one --trainer.precision makes"),
         # Lightning divides by these after the first step (ZeroDivisionError), or refuses them in a traceback
         (["--trainer.val_check_interval", "0"], "--trainer.val_check_interval 0: validate every N >= 1 training steps"),
         (["--trainer.check_val_every_n_epoch", "0"], "--trainer.check_val_every_n_epoch 0: validate every N >= 1"),
