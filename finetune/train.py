@@ -279,9 +279,11 @@ def store_episodes(episodes: list[dict[str, list]], done: np.ndarray, replay: Re
 def reset_seeded(envs, samplers: list, run_seed: int, episodes: int, starting: np.ndarray) -> np.ndarray:
     """Reset the envs where `starting` [N] is true with their episode seeds (`episode_seed` after `episodes` episodes
     of the run), their prefill samplers reseeded alike; -> every env's frame [N, 3, 64, 64]."""
+    from finetune.envs.base import action_seed
+
     seeds = [episode_seed(run_seed, i, episodes) for i in range(len(starting))]
     for i in np.flatnonzero(starting):
-        samplers[i].seed(seeds[i])
+        samplers[i].seed(action_seed(seeds[i]))
     return envs.reset(seed=seeds, options={"reset_mask": starting})[0]
 
 
@@ -463,10 +465,12 @@ def loop(cfg: FinetuneConfig, agent: Agent, envs, seeds: list[int], eval_env, re
     prefill sampler reseeded alike), and every evaluation with seed + 10,000 + env steps: with one env,
     a run resumed from a checkpoint taken at an episode's end continues exactly as an unbroken one.
     """
+    from finetune.envs.base import action_seed
+
     parallel = cfg.num_envs > 1
     samplers = [copy.deepcopy(envs.single_action_space) for _ in seeds]  # prefill's uniform actions, per env
     for sampler, seed in zip(samplers, seeds):
-        sampler.seed(seed)
+        sampler.seed(action_seed(seed))
     action_shape = envs.single_action_space.shape
     if reseed:
         obs = reset_seeded(envs, samplers, cfg.seed, counters["episodes"], np.ones(cfg.num_envs, bool))

@@ -41,6 +41,7 @@ class ExpertPolicy:
     def __init__(self, env, noise: float, seed: int) -> None:  # env: finetune.envs.metaworld_env.MetaWorldEnv
         from metaworld.policies import ENV_POLICY_MAP
 
+        from finetune.envs.base import action_seed
         from finetune.envs.metaworld_env import tasks
 
         if not env.name.startswith("metaworld_"):
@@ -54,7 +55,7 @@ class ExpertPolicy:
         self.env = env
         self.expert = ENV_POLICY_MAP[env_id]()
         self.noise = noise
-        self.rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng(action_seed(seed))
 
     def reset(self) -> None:
         pass

@@ -10,7 +10,9 @@ DeepMind Control, Meta-World and RoboDesk:
 - the time limit counts agent steps (calls to `step`) and ends an episode with `truncated=True`,
   never `terminated=True` (a time limit is not a terminal state: the critic must bootstrap);
 - `info["success"]` (1.0 / 0.0) where the suite defines success: whether the task was solved at any
-  simulator step inside this agent step.
+  simulator step inside this agent step;
+- random actions (the action space's samples: a prefill, `--policy random`) come from a stream of their own,
+  `action_seed(seed)`, not from one seeded like the simulator's.
 
 A suite subclass supplies the hooks `_seed_sim`, `_reset_sim`, `_step_sim`, `_render_frame` and `_close_sim`.
 A non-finite action (a diverged policy's NaN) and any use after `close()` are refused by name: a simulator
@@ -23,6 +25,13 @@ from typing import Any
 
 import gymnasium
 import numpy as np
+
+
+def action_seed(seed: int) -> int:
+    """The seed of a policy's own randomness (uniform random actions, an expert's action noise) in an env seeded
+    `seed`. Seeded with `seed` itself, its generator was the same PCG64 stream as Meta-World's placements (gymnasium's
+    `np_random`): the first random action of an episode held the object's normalised x (found by a review)."""
+    return int(np.random.SeedSequence([seed, 1]).generate_state(1)[0])
 
 
 class EnvSettingError(ValueError):
@@ -57,7 +66,8 @@ class PixelEnv(gymnasium.Env):
         self._action_low = np.asarray(action_low, dtype=np.float64)  # [A]
         self._action_high = np.asarray(action_high, dtype=np.float64)  # [A]
         self.observation_space = gymnasium.spaces.Box(0, 255, (3, image_size, image_size), np.uint8)
-        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, self._action_low.shape, np.float32, seed=seed)
+        self.action_space = gymnasium.spaces.Box(-1.0, 1.0, self._action_low.shape, np.float32,
+                                                 seed=action_seed(seed))
         self._agent_steps = 0
         self._episode_over = True  # step() needs a reset() first
         self._closed = False

@@ -129,6 +129,21 @@ def test_metaworld_draws_a_fresh_placement_every_reset_from_its_seed(envs_to_clo
     assert drawer_positions(4, 3) != first[:3]
 
 
+def test_random_actions_are_independent_of_the_placement_the_same_seed_draws(envs_to_close):
+    """The action space was seeded with the env's seed, and so drew the same PCG64 stream as Meta-World's placements:
+    the first random action of `--policy random` and of a prefill held the drawer's x, exactly (found by a review)."""
+    positions, first_actions = [], []
+    for seed in range(20):
+        env = make_env("metaworld_drawer_close", seed=seed, fast_render=True)
+        envs_to_close.append(env)
+        env.reset(seed=seed)
+        positions.append(float(env.state[4]))  # the drawer's x: the placement
+        first_actions.append(env.action_space.sample())
+        env.close()
+    correlations = [abs(np.corrcoef(positions, np.array(first_actions)[:, dim])[0, 1]) for dim in range(4)]
+    assert max(correlations) < 0.9, correlations  # 1.0 before, in dimension 3
+
+
 def test_metaworld_time_limit_beyond_its_path_length_fails_clearly():
     with pytest.raises(ValueError, match="500-step episodes"):
         make_env("metaworld_dial_turn", seed=0, time_limit=501)
