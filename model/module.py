@@ -108,9 +108,14 @@ def compiled(function: Callable, setting: CompileSetting, device: torch.device) 
     return function if mode is None else torch.compile(function, mode=mode, dynamic=False)
 
 
+def several_ranks() -> bool:
+    """Whether this process is one rank of a DDP job of more than one."""
+    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
+
+
 def mean_over_ranks(value: torch.Tensor) -> torch.Tensor:
     """The mean of a tensor over the DDP ranks (itself with one process); an all-reduce without Lightning's barrier."""
-    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+    if not several_ranks():
         return value
     total = value.clone()
     dist.all_reduce(total)
@@ -260,12 +265,13 @@ class PretrainModule(L.LightningModule):
         world_model_opt.zero_grad()
         self.manual_backward(terms["loss"])
         world_model_opt.step()  # on_before_optimizer_step unscales, clips, and flags a non-finite step (self._skip)
-        # over the ranks, in one all-reduce: λ's constraint, and whether any rank's loss was not finite (a NaN on one
-        # rank makes every rank's step a skip, and every rank must count it as non-finite, not as the scaler's)
-        nonfinite_loss, k_disagreement = mean_over_ranks(torch.stack(
-            [(~torch.isfinite(terms["loss"])).float(), terms["k_disagreement"].detach().float()]))
+        loss_finite, k_disagreement = torch.isfinite(terms["loss"]), terms["k_disagreement"]
+        if several_ranks():  # both over the ranks, in one all-reduce: a NaN loss on one rank makes every rank's step
+            #                 a skip, which every rank must count as non-finite, not as the scaler's
+            nonfinite, k_disagreement = mean_over_ranks(torch.stack([(~loss_finite).float(), k_disagreement.float()]))
+            loss_finite = nonfinite == 0
         # skipped with a finite loss under 16-mixed: GradScaler's float16 overflow at its current scale
-        by_scaler = self._skip & (nonfinite_loss == 0) & (self._grad_scaler() is not None)
+        by_scaler = self._skip & loss_finite & (self._grad_scaler() is not None)
         self.scaler_skips += by_scaler
         self.nonfinite_steps += self._skip & ~by_scaler
         if self.hcu_enabled:
