@@ -16,6 +16,7 @@ import contextlib
 import glob
 import hashlib
 import importlib.util
+import itertools
 import json
 import os
 import time
@@ -186,9 +187,9 @@ def verified_stats(out: Path, plan: ShardPlan, digest: str, check_hash: bool = T
     stats_path, tar_path = out / f"{plan.name}.stats.json", out / f"{plan.name}.tar"
     try:
         stats = json.loads(stats_path.read_text())
-    except (OSError, json.JSONDecodeError):
+    except (OSError, ValueError):  # missing, not JSON, not UTF-8 text (a disk's damage): the shard is built again
         return None
-    if (stats.get("settings_digest") != digest or stats.get("planned") != [r.id for r in plan.records]
+    if not isinstance(stats, dict) or (stats.get("settings_digest") != digest or stats.get("planned") != [r.id for r in plan.records]
             or not tar_path.is_file() or tar_path.stat().st_size != stats.get("bytes")):
         return None
     if check_hash and _sha256(tar_path) != stats.get("sha256"):
@@ -360,18 +361,25 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
     kept = {name: stats for name, stats in complete.items() if not (config.retry_failed and retryable(stats["errors"]))}
     todo = [plan for plan in mine if plan.name not in kept]
     valid = [r for plan in todo for r in plan.records if not id_fault(r.id)]
-    # the videos are needed only for clips left to decode: shards copied from other machines assemble without them
-    if valid and not config.videos.is_dir():
+    videos = Path(os.path.abspath(config.videos))  # errors.jsonl's details name it: the same however it is spelled
+    # the videos are needed only for clips left to decode: shards copied from other machines assemble without them.
+    # A wrong --videos holds none of the build's clips (those left may all be missing: the tail of a download)
+    if valid and not videos.is_dir():
         raise BuildError(f"--videos {config.videos}: not a directory (it should hold <id>.webm files)")
-    if valid and not any((config.videos / f"{record.id}.webm").is_file() for record in valid):
-        other = sorted(path.name for path in config.videos.glob(f"{glob.escape(valid[0].id)}.*"))
+    planned = (r for plan in plans for r in plan.records if not id_fault(r.id))
+    if valid and not any((videos / f"{record.id}.webm").is_file() for record in itertools.chain(valid, planned)):
+        other = sorted(path.name for path in videos.glob(f"{glob.escape(valid[0].id)}.*"))
         found = (f"; {other[0]} is there, but clips are read from <id>.webm files: convert them to WebM, or rename "
                  "them if they are WebM" if other else ": point --videos at the directory of SSv2's <id>.webm files")
-        raise BuildError(f"--videos {config.videos} holds none of the {len(valid)} clips this part has left to "
-                         f"build (e.g. no {valid[0].id}.webm){found}")
+        raise BuildError(f"--videos {config.videos} holds none of the build's {sum(len(p.records) for p in plans)} "
+                         f"clips (e.g. no {valid[0].id}.webm){found}")
     config.out.mkdir(parents=True, exist_ok=True)
     with part_lock(config):  # one build of a part at a time: they would write the same .partial files
         check_settings(config.out, settings, digest, config.part)
+        if todo:  # they describe the shards as they were: gone until this build writes them again (a kill meanwhile
+            #       left a manifest that the loader took for finished, of shards since replaced)
+            for name in (MANIFEST_FILE, ERRORS_FILE):
+                (config.out / name).unlink(missing_ok=True)
         workers = min(config.workers, len(valid))  # a worker each clip at most: one without a clip only costs memory
         log(f"shards: {len(plans)} in all, {len(mine)} in part {config.part}/{config.num_parts}, "
             f"{len(kept)} already complete, {len(todo)} to build ({len(valid)} clips, {workers} workers)")
@@ -380,7 +388,7 @@ def build(config: BuildConfig, log=print) -> tuple[dict | None, int]:
         decode = DecodeSettings(config.size, config.resize, config.min_frames, config.encoding, config.quality)
         with DecodePool(workers, decode, config.timeout) as pool, \
                 tqdm(total=len(valid), desc="build", unit="clip", disable=None) as progress:
-            results = pool.imap(config.videos / f"{record.id}.webm" for record in valid)
+            results = pool.imap(videos / f"{record.id}.webm" for record in valid)
             for plan in todo:
                 stats = write_shard(config, plan, results, digest, progress)
                 before = complete.get(plan.name)  # a shard that --retry-failed rebuilds must not lose a clip it holds

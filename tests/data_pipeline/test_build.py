@@ -353,7 +353,7 @@ def test_bad_inputs_give_clear_errors(sample_ssv2, tmp_path, monkeypatch):
     with pytest.raises(BuildError, match="--videos .*no-videos: not a directory"):
         build(config, log=quiet)
     config.videos = sample_ssv2 / "annotations"  # a directory, but not of the clips' videos
-    with pytest.raises(BuildError, match=r"--videos .*annotations holds none of the \d+ clips this part has left "):
+    with pytest.raises(BuildError, match=r"--videos .*annotations holds none of the build's \d+ clips \(e.g. no "):
         build(config, log=quiet)
     assert not config.out.exists()  # refused before anything was written
     mp4 = shutil.copytree(sample_ssv2 / "videos", tmp_path / "mp4")  # the videos, named otherwise: said so
@@ -464,6 +464,77 @@ def test_retry_failed_rebuilds_the_shard_of_a_clip_that_was_missing(sample_ssv2,
     manifest, status = build(dataclasses.replace(config, retry_failed=True), log=quiet)
     assert manifest["errors"]["total"] == 0 and manifest["splits"]["validation"]["clips"] == 3 and status == 0
     assert (config.out / "errors.jsonl").read_text() == ""
+
+
+def test_a_rebuild_killed_before_its_manifest_leaves_none_of_the_shards_as_they_were(sample_ssv2, clean_annotations,
+                                                                                     tmp_path, monkeypatch):
+    """--retry-failed replaced a shard and was killed before it wrote manifest.json: the old manifest stayed, with
+    the old shard's size, checksum and clips, and the loader took the directory for finished (found by a review)."""
+    videos = shutil.copytree(sample_ssv2 / "videos", tmp_path / "videos")
+    late = json.loads(annotation_path(clean_annotations, "validation").read_text())[1]["id"]
+    (videos / f"{late}.webm").rename(tmp_path / "late.webm")
+    config = BuildConfig(annotations=clean_annotations, videos=videos, out=tmp_path / "shards", splits=["validation"],
+                         max_error_rate=0.5)
+    build(config, log=quiet)
+    (tmp_path / "late.webm").rename(videos / f"{late}.webm")
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt  # as a kill between the last shard and the manifest
+
+    monkeypatch.setattr("data_pipeline.build.assemble_manifest", killed)
+    with pytest.raises(KeyboardInterrupt):
+        build(dataclasses.replace(config, retry_failed=True), log=quiet)
+    assert not (config.out / "manifest.json").exists() and not (config.out / "errors.jsonl").exists()
+    monkeypatch.undo()
+    manifest, status = build(config, log=quiet)  # the re-run writes them, of the shards as they are now
+    assert status == 0 and manifest["splits"]["validation"]["clips"] == 3 and manifest["errors"]["total"] == 0
+
+
+def test_shards_left_whose_videos_are_all_missing_still_build(sample_ssv2, clean_annotations, tmp_path):
+    """The check for a wrong --videos looked only at the clips left to build: when those were all missing (the tail of
+    a download, or a part given only such shards), every re-run was refused and no manifest was ever written."""
+    videos = shutil.copytree(sample_ssv2 / "videos", tmp_path / "videos")
+    last = json.loads(annotation_path(clean_annotations, "validation").read_text())[-1]["id"]
+    (videos / f"{last}.webm").unlink()  # never downloaded
+    config = BuildConfig(annotations=clean_annotations, videos=videos, out=tmp_path / "shards", splits=["validation"],
+                         clips_per_shard=1, max_error_rate=0.5)
+    manifest, _ = build(config, log=quiet)
+    last_shard = manifest["splits"]["validation"]["shards"][-1]["name"]  # its clip is the missing one
+    for stale in (config.out / last_shard, config.out / last_shard.replace(".tar", ".stats.json"),
+                  config.out / "manifest.json"):
+        stale.unlink()  # as a build killed before its last shard leaves it
+    manifest, status = build(config, log=quiet)
+    assert status == 0 and manifest["errors"]["by_reason"] == {"missing": 1}
+
+
+def test_errors_jsonl_is_the_same_however_videos_is_spelled(sample_ssv2, clean_annotations, tmp_path, monkeypatch):
+    """The decoder got --videos as typed, and its details name the path: a resume from another directory, or with a
+    relative path, wrote other bytes (found by a review)."""
+    videos = shutil.copytree(sample_ssv2 / "videos", tmp_path / "videos")
+    missing = json.loads(annotation_path(clean_annotations, "validation").read_text())[0]["id"]
+    (videos / f"{missing}.webm").unlink()
+    written = []
+    for spelled in (videos, Path("videos")):
+        monkeypatch.chdir(tmp_path)
+        out = tmp_path / f"out-{len(written)}"
+        build(BuildConfig(annotations=clean_annotations, videos=spelled, out=out, splits=["validation"],
+                          max_error_rate=0.5), log=quiet)
+        written.append((out / "errors.jsonl").read_text())
+    assert written[0] == written[1] and f"no file at {videos / missing}.webm" in written[0]
+
+
+@pytest.mark.parametrize("damage", [b"\xff\xfe", b"[]", b"null"])
+def test_a_damaged_stats_file_has_its_shard_built_again(sample_ssv2, clean_annotations, tmp_path, damage):
+    """Bytes that are not UTF-8 (a disk's damage) raised UnicodeDecodeError, JSON that is not an object
+    AttributeError, both as tracebacks; the docs promise the shard is built again."""
+    config = BuildConfig(annotations=clean_annotations, videos=sample_ssv2 / "videos", out=tmp_path, splits=["validation"])
+    build(config, log=quiet)
+    before = directory_bytes(tmp_path)
+    (tmp_path / "validation-000000.stats.json").write_bytes(damage)
+    lines = []
+    build(config, log=lines.append)
+    assert any("1 to build" in line for line in lines)
+    assert directory_bytes(tmp_path) == before
 
 
 def test_retry_failed_never_loses_a_clip_a_shard_holds(sample_ssv2, clean_annotations, tmp_path):
