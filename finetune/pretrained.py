@@ -45,8 +45,10 @@ def gap_embedding(model: FrozenWorldModel, gap: int, clip_length: float | None =
     """Δt^e_k for the gap k → [temporal_dim]; `clip_length` is T of the relative mode (default: the reference
     length). k = 0 is what every pre-training sequence began with (its first frame has no gap before it)."""
     clip_length = model.temporal.reference_length if clip_length is None else clip_length
+    device = model.temporal.inv_freq.device  # a model loaded onto a GPU: its inputs there too
     with torch.no_grad():
-        return model.temporal(torch.tensor(float(gap)), torch.tensor(float(clip_length))).float()
+        return model.temporal(torch.tensor(float(gap), device=device),
+                              torch.tensor(float(clip_length), device=device)).float()
 
 
 def k1_embedding(model: FrozenWorldModel, clip_length: float | None = None) -> torch.Tensor:

@@ -41,6 +41,13 @@ def test_k1_embedding_follows_the_exported_convention(export_dir):
     assert torch.allclose(k1_embedding(model, clip_length=2 * reference), half)
 
 
+def test_the_gap_embedding_is_made_on_the_device_of_the_model(export_dir):
+    """Its inputs were made on the CPU: an export loaded onto a GPU failed in k1_embedding and in the agent's
+    constructor (found by a review; the meta device stands in for a GPU)."""
+    model = load_pretrained(export_dir).to("meta")
+    assert k1_embedding(model).device.type == "meta"
+
+
 def test_k1_embedding_takes_the_median_length_of_the_exports_pre_training_clips(export_copy):
     """An export that records its clips' median frame count (provenance.train_clip_length) puts k = 1 where a
     typical pre-training clip had it; the setting k1_clip_length still wins."""
