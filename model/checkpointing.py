@@ -18,7 +18,6 @@ the epoch, as every `every_n_train_steps` checkpoint does, and the resume contin
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
@@ -40,8 +39,6 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         try:
             with written_whole(path) as partial, open(partial, "wb") as file:  # Ctrl-C, a full disk: the old one stays
                 torch.save(checkpoint, file)
-                file.flush()
-                os.fsync(file.fileno())
         except RuntimeError as error:  # torch's zip writer reports a failed write (a full disk) as a RuntimeError
             if not isinstance(error.__context__, OSError):
                 raise

@@ -24,3 +24,18 @@ def test_a_block_that_fails_leaves_the_file_as_it_was_and_nothing_beside_it(tmp_
         partial.write_text("half of the n")
         raise error
     assert path.read_text() == "old" and list(tmp_path.iterdir()) == [path]
+
+
+def test_the_new_contents_and_the_rename_are_flushed_to_the_disk(tmp_path, monkeypatch):
+    """Without fsync, a power loss or a node's crash after the rename could leave an empty or cut-off checkpoint in
+    place of the old and the new one (found by a review)."""
+    import os
+
+    flushed, renamed = [], []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: (flushed.append(os.readlink(f"/proc/self/fd/{fd}")), real_fsync(fd)))
+    monkeypatch.setattr(os, "replace", lambda a, b: (renamed.append(len(flushed)), real_replace(a, b)))
+    path = tmp_path / "checkpoint.pt"
+    with written_whole(path) as partial:
+        partial.write_text("new")
+    assert flushed == [str(partial), str(tmp_path)] and renamed == [1]  # the contents before the rename, then it
