@@ -157,11 +157,11 @@ def train_command(argv: list[str], terminated: list[int]) -> int:
             raise ConfigError(f"{args.config} is a config for {cfg.paradigm} training (paradigm: {cfg.paradigm}): run "
                               f"`{COMMANDS[cfg.paradigm]} --config {args.config} …`, or give `{COMMANDS[paradigm]}` "
                               f"a config from {CONFIG_DIRS[paradigm]}/")
-        defaults = FinetuneConfig()
-        for key, owner in others_settings(paradigm).items():  # set (file, --set) for a run that would ignore it
+        defaults = FinetuneConfig(action_repeat=cfg.action_repeat)  # train_every's default follows it
+        for key, owners in others_settings(paradigm).items():  # set (file, --set) for a run that would ignore it
             if getattr(cfg, key) != getattr(defaults, key):
-                raise ConfigError(f"setting {key} belongs to `{COMMANDS[owner]}`, not to `{COMMANDS[paradigm]}`: "
-                                  "drop it")
+                readers = " and ".join(f"`{COMMANDS[owner]}`" for owner in owners)
+                raise ConfigError(f"setting {key} belongs to {readers}, not to `{COMMANDS[paradigm]}`: drop it")
         pretrained = args.pretrained
         if cfg.paradigm == "offline" and cfg.num_envs != 1:  # it steps no training env; a user would expect speed
             print(f"{parser(subcommand).prog}: note: offline RL steps no training env (evaluation plays one), so "

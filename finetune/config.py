@@ -23,17 +23,18 @@ from model.compiling import COMPILE_SETTINGS
 from model.config import ConfigError, read_config_file
 
 PARADIGMS = ("online", "offline", "imitation")
-# the settings only one paradigm reads (the others' runs would ignore them)
-PARADIGM_SETTINGS = {"offline": ("dataset", "penalty", "penalty_scale", "penalty_frozen_weight"),
-                     "imitation": ("demos", "demo_fraction", "disc_lr", "disc_gp_scale", "expert_latents")}
+# the settings only some paradigms read (the others' runs would ignore them): the paradigms -> their settings
+PARADIGM_SETTINGS = {("offline",): ("dataset", "penalty", "penalty_scale", "penalty_frozen_weight"),
+                     ("imitation",): ("demos", "demo_fraction", "disc_lr", "disc_gp_scale", "expert_latents"),
+                     ("online", "imitation"): ("prefill", "train_every", "pin_envs")}  # the env-stepping loop's
 
 
 ENV_SETTINGS = ("action_repeat", "time_limit", "fast_render")  # make_env's keyword arguments, FinetuneConfig's fields
 
 
-def others_settings(paradigm: str) -> dict[str, str]:
-    """The settings a `paradigm` run does not read, as another paradigm's: setting -> that paradigm."""
-    return {key: owner for owner, keys in PARADIGM_SETTINGS.items() if owner != paradigm for key in keys}
+def others_settings(paradigm: str) -> dict[str, tuple[str, ...]]:
+    """The settings a `paradigm` run does not read, as other paradigms': setting -> the paradigms that read it."""
+    return {key: owners for owners, keys in PARADIGM_SETTINGS.items() if paradigm not in owners for key in keys}
 
 PENALTIES = ("loglik_std", "max_std", "mean_disagreement")
 # settings that take one of a few words
@@ -169,6 +170,11 @@ class FinetuneConfig:
                               f"offline RL needs model_heads >= 2 (LOMPO: 7), got {self.model_heads}; or penalty_scale=0")
         if self.agent == "scratch" and self.penalty_frozen_weight > 0:
             raise ConfigError("penalty_frozen_weight needs the frozen stream: the scratch agent has none; set it to 0")
+        frozen_only = {"noise_std": 0.01, "k1_clip_length": None}  # the frozen stream's k = 1 embedding (defaults)
+        if self.agent == "scratch" and (changed := [key for key, value in frozen_only.items()
+                                                    if getattr(self, key) != value]):
+            raise ConfigError(f"{changed[0]} sets the frozen stream's k = 1 embedding: the scratch agent has no frozen "
+                              "stream; drop it")
 
 
 WHERE_CONFIGS_ARE = "the configs are in configs/finetune/, configs/offline/ and configs/imitation/"

@@ -71,6 +71,13 @@ def test_a_setting_of_another_paradigm_or_given_twice_is_refused_not_ignored(run
         in capsys.readouterr().err
     assert main(["--config", "configs/finetune/demo.yaml", "--set", "disc_lr=0.001"]) == 2
     assert "setting disc_lr belongs to `hauwm finetune imitate`, not to `hauwm finetune`" in capsys.readouterr().err
+    # offline RL steps no env: these ran without a word, then blocked a resume that dropped them (found by a review)
+    for setting in ("prefill=5000", "train_every=7", "pin_envs=false"):
+        assert main(["offline", "--config", "configs/offline/demo.yaml", "--dataset", "x", "--set", setting]) == 2
+        assert (f"setting {setting.split('=')[0]} belongs to `hauwm finetune` and `hauwm finetune imitate`, not to "
+                "`hauwm finetune offline`: drop it") in capsys.readouterr().err
+    assert main(["--config", "configs/finetune/demo.yaml", "--set", "agent=scratch", "--set", "noise_std=0.5"]) == 2
+    assert "noise_std sets the frozen stream's k = 1 embedding: the scratch agent has no frozen" in capsys.readouterr().err
     assert main(["--config", "configs/finetune/demo.yaml", "--steps", "2", "--set", "steps=4"]) == 2
     assert "--steps 2 and --set steps=4 disagree: give one" in capsys.readouterr().err
     assert main(["--config", "configs/finetune/demo.yaml", "--steps", "4", "--set", "steps=4"]) == 0  # agree
@@ -90,6 +97,8 @@ def test_a_run_that_recorded_another_paradigms_setting_still_resumes_without_it(
     cfg = FinetuneConfig(task="dmc_cartpole_swingup")
     written = {**dataclasses.asdict(cfg), "penalty_scale": 10.0, "disc_lr": 1e-3}
     assert changed_settings(cfg, written) == []
+    offline = FinetuneConfig(task="dmc_cartpole_swingup", paradigm="offline", dataset="x", model_heads=2)
+    assert changed_settings(offline, {**dataclasses.asdict(offline), "prefill": 5000, "train_every": 7}) == []
     assert changed_settings(cfg, {**written, "horizon": 7}) == ["horizon=7 (asked: 15)"]
 
 
