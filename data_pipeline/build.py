@@ -189,7 +189,8 @@ def verified_stats(out: Path, plan: ShardPlan, digest: str, check_hash: bool = T
         stats = json.loads(stats_path.read_text())
     except (OSError, ValueError):  # missing, not JSON, not UTF-8 text (a disk's damage): the shard is built again
         return None
-    if not isinstance(stats, dict) or (stats.get("settings_digest") != digest or stats.get("planned") != [r.id for r in plan.records]
+    if (not isinstance(stats, dict) or stats.get("settings_digest") != digest
+            or stats.get("planned") != [r.id for r in plan.records]
             or not tar_path.is_file() or tar_path.stat().st_size != stats.get("bytes")):
         return None
     if check_hash and _sha256(tar_path) != stats.get("sha256"):

@@ -170,9 +170,9 @@ class FinetuneConfig:
                               f"offline RL needs model_heads >= 2 (LOMPO: 7), got {self.model_heads}; or penalty_scale=0")
         if self.agent == "scratch" and self.penalty_frozen_weight > 0:
             raise ConfigError("penalty_frozen_weight needs the frozen stream: the scratch agent has none; set it to 0")
-        frozen_only = {"noise_std": 0.01, "k1_clip_length": None}  # the frozen stream's k = 1 embedding (defaults)
-        if self.agent == "scratch" and (changed := [key for key, value in frozen_only.items()
-                                                    if getattr(self, key) != value]):
+        frozen_only = ("noise_std", "k1_clip_length")  # the frozen stream's k = 1 embedding
+        if self.agent == "scratch" and (changed := [key for key in frozen_only
+                                                    if getattr(self, key) != getattr(FinetuneConfig, key)]):
             raise ConfigError(f"{changed[0]} sets the frozen stream's k = 1 embedding: the scratch agent has no frozen "
                               "stream; drop it")
 
