@@ -26,11 +26,11 @@ def written_whole(path: Path, partial_name: str | None = None) -> Iterator[Path]
     partial = path.with_name(partial_name or f".{path.name}.partial")
     try:
         yield partial
+        flush_to_disk(partial)  # a full quota of network storage may show only here (EDQUOT)
+        os.replace(partial, path)
     except BaseException:
         partial.unlink(missing_ok=True)
         raise
-    flush_to_disk(partial)
-    os.replace(partial, path)
     flush_to_disk(path.parent)
 
 

@@ -34,8 +34,10 @@ class LockHeld(Exception):
 
 @contextlib.contextmanager
 def pid_lock(path: Path) -> Iterator[None]:
-    """Hold an exclusive lock on `path` (made where it does not exist), with this process's pid written in it."""
+    """Hold an exclusive lock on `path` (made, and its directory, where they do not exist), with this process's pid
+    written in it."""
     while True:
+        path.parent.mkdir(parents=True, exist_ok=True)  # again after a holder that made it removed it on letting go
         lock = open(path, "a+")
         if not _flock_soon(lock):
             lock.seek(0)
@@ -57,7 +59,6 @@ def pid_lock(path: Path) -> Iterator[None]:
 def locked(path: Path, refused: Callable[[str], Exception]) -> Iterator[None]:
     """Hold `pid_lock(path)` (its directory made where needed) while the block runs, and delete the file before
     letting go; where another process holds it, raise `refused(its pid)`: the caller's error, naming what to do."""
-    path.parent.mkdir(parents=True, exist_ok=True)
     with contextlib.ExitStack() as held:
         try:
             held.enter_context(pid_lock(path))

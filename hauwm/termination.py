@@ -114,12 +114,12 @@ class _Terminable:
 def terminable() -> Iterator[StopRequest]:
     """SIGTERM sets the StopRequest's flag instead of killing the process (`handling_sigterm`)."""
     request = StopRequest()
-    _Terminable.blocks += 1
-    try:
-        with handling_sigterm(request.note):
+    with handling_sigterm(request.note):  # installed before the count, restored after it: a SIGTERM at any moment
+        _Terminable.blocks += 1           # meets this handler or an interrupt that counts no block (it was lost when
+        try:                              # the interrupt saw a block counted before, or after, this handler was in)
             yield request
-    finally:
-        _Terminable.blocks -= 1
+        finally:
+            _Terminable.blocks -= 1
 
 
 @contextlib.contextmanager

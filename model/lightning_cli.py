@@ -567,7 +567,7 @@ class PretrainCLI(LightningCLI):
                 if not any(directory.iterdir()):
                     directory.rmdir()
 
-            directory.mkdir(parents=True)
+            directory.mkdir(parents=True, exist_ok=True)  # another fit starting at once may have made it too
             self.held.callback(remove_if_empty)
         self.held.enter_context(locked(directory / FIT_LOCK, lambda pid: ConfigError(
             f"{directory} is in use by another fit (pid {pid}): wait for it to end, or give this one another "

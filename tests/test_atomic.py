@@ -39,3 +39,20 @@ def test_the_new_contents_and_the_rename_are_flushed_to_the_disk(tmp_path, monke
     with written_whole(path) as partial:
         partial.write_text("new")
     assert flushed == [str(partial), str(tmp_path)] and renamed == [1]  # the contents before the rename, then it
+
+
+def test_a_flush_that_fails_leaves_the_file_as_it_was_and_nothing_beside_it(tmp_path, monkeypatch):
+    """A full quota of network storage shows at fsync: the partial file stayed, on a disk the user was just told to
+    free (found by a review)."""
+    import errno
+    import os
+
+    def full(fd):
+        raise OSError(errno.EDQUOT, "Disk quota exceeded")
+
+    monkeypatch.setattr(os, "fsync", full)
+    path = tmp_path / "checkpoint.pt"
+    path.write_text("old")
+    with pytest.raises(OSError, match="quota"), written_whole(path) as partial:
+        partial.write_text("new")
+    assert path.read_text() == "old" and list(tmp_path.iterdir()) == [path]

@@ -44,6 +44,28 @@ def test_a_lock_whose_file_its_last_holder_deleted_meanwhile_is_taken_on_the_new
         assert len(opened) == 1 and path.is_file() and lock_holder(path) == os.getpid()  # the file at `path`
 
 
+def test_a_lock_whose_holder_removed_its_directory_meanwhile_is_taken_in_the_directory_made_again(tmp_path,
+                                                                                                   monkeypatch):
+    """Two runs on one new --logdir: the first, refused, removed the directory it had made as it let go; the second,
+    waiting on the deleted file, then failed to open the lock again (FileNotFoundError; found by a review)."""
+    import shutil
+
+    import hauwm.pid_lock
+
+    path, opened = tmp_path / "new" / "run" / ".lock", []
+    flock_soon = hauwm.pid_lock._flock_soon
+
+    def removed_first(lock):
+        if not opened:  # the holder lets go: it deletes the file and the directories it made
+            opened.append(lock)
+            shutil.rmtree(tmp_path / "new")
+        return flock_soon(lock)
+
+    monkeypatch.setattr(hauwm.pid_lock, "_flock_soon", removed_first)
+    with pid_lock(path):
+        assert len(opened) == 1 and path.read_text() == str(os.getpid())
+
+
 def test_a_lock_asked_for_while_lock_holder_looks_is_not_refused(tmp_path):
     """lock_holder holds a shared lock for an instant; a process asking for the lock then was told it was held."""
     import fcntl
