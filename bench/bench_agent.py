@@ -96,8 +96,9 @@ def bench_acting(agent: Agent, envs: int, seconds: float) -> tuple[float, float]
     obs = np.random.default_rng(0).integers(0, 256, (envs, 3, 64, 64), dtype=np.uint8)
     latent, prev_action = agent.initial(envs)
     start = time.perf_counter()
-    agent.act(obs, latent, prev_action, explore=True)
+    _, latent, prev_action = agent.act(obs, latent, prev_action, explore=True)
     first = time.perf_counter() - start
+    _, latent, prev_action = agent.act(obs, latent, prev_action, explore=True)  # CUDA graphs: recorded on the second
     calls, start = 0, time.perf_counter()
     while calls < 3 or time.perf_counter() - start < seconds:
         _, latent, prev_action = agent.act(obs, latent, prev_action, explore=True)  # includes the copy to the host

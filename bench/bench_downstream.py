@@ -173,7 +173,11 @@ def percent(rate: float) -> str:
 def report(args: argparse.Namespace, names: list[str], refs: dict[str, tuple[float, float, float]]) -> None:
     low, high = refs["random"][0], refs["expert"][0]
     print(f"\nmachine: {describe_machine(args.sizes['device'])}")
-    print(f"settings: task {args.task}, {args.env}, seed {args.seed}")
+    from finetune.train import EVAL_SEED
+
+    print(f"settings: task {args.task}, {args.env}, seed {args.seed} (the references below play env seed "
+          f"{args.seed} + {EVAL_SEED}; each evaluation of a run, seed + {EVAL_SEED} + its step: other placements, a "
+          "rough comparison; the replay after, with --final-episodes, plays all on one env seed)")
     print(f"{'run':<28} {'at':>8} {f'return ({args.eval_episodes} episodes)':>22} {'normalised':>11} {'success':>8} "
           f"{'u dataset':>10} {'u imagined':>11}")
     for name, (mean, std, success) in refs.items():
@@ -332,8 +336,10 @@ def main() -> int:
               "of that moment: the same command goes on from there", flush=True)
         status = 143
     names = args.runs if args.report and args.runs else list(plans)
-    from finetune.train import EVAL_SEED  # the runs' own evaluation seeds: the references play the same episodes
+    from finetune.train import EVAL_SEED
 
+    # the references play env seed + EVAL_SEED; each evaluation of a run plays seed + EVAL_SEED + its step, so the
+    # table's last evaluations met other placements than the references did: --final-episodes plays all on one seed
     report(args, names, references(args, args.eval_episodes, args.seed + EVAL_SEED))
     if args.final_episodes and not status:
         final_report(args, names)

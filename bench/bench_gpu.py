@@ -32,8 +32,8 @@ and just after, and the whole sequence runs --rounds times (default 3) with the 
 Then each fit by the host's clock: the mean and median time inside its steps and between them, inside's median over
 its first 200 timed steps and the rest (do steps slow down as the fit goes on?), its slow steps (an interval over
 twice the median: a logging step, a late batch, an epoch's end) with what they add to the mean, and on a GPU how many
-steps the GPU had queued at a step's end (about 1: it waits for the host; many: the host is ahead, and blocks in a
-launch once CUDA's queue is full).
+steps the GPU had queued at a step's end (about 0: it has finished the step and waits for the host; 1 or more: it
+is behind the host, which blocks in a launch once CUDA's queue is full).
 Last, where a fit step's time goes (StepDiagnosis, one more short fit on long epochs): the operations that make
 the host wait for the GPU, by call site; the host's time inside and between steps; a profiled window.
 Shards: built from `hauwm shards sample-data --clips 344` in a temporary directory, or --shards DIR.
@@ -95,9 +95,10 @@ class StepTimer(L.Callback):
     time of the training process (all its threads) at each batch end; the device is synchronised at the last step's
     end, so the last time covers all queued work, and not the last.ckpt the fit writes after it (the
     checkpoint callbacks run after this one). On a GPU also, at each batch end, how many steps the GPU has queued:
-    those whose work it has not finished, this one included (CUDA events, which complete in order). About 1 when
-    the GPU waits for the host; more when the host runs ahead, until CUDA's launch queue is full and a launch
-    blocks the host: then the host's time inside a step is the GPU's, whatever the GPU's busy time."""
+    those whose work it has not finished, this one included (CUDA events, which complete in order). About 0 when
+    the GPU waits for the host (it has finished the step by the time the host ends it); 1 or more when the host runs
+    ahead, until CUDA's launch queue is full and a launch blocks the host: then the host's time inside a step is the
+    GPU's, whatever the GPU's busy time."""
 
     def __init__(self):
         self.start, self.starts, self.times, self.cpu_times = 0.0, [], [], []
@@ -627,7 +628,8 @@ def main() -> None:
     print(f"\n{'the fits by the host':<18} {'workers':>7} {'inside ms':>13} {'early / late':>13} {'between ms':>13} "
           f"{'slow steps':>10} {'+ms a step':>10} {'GPU queue':>11}  (every timed step: inside and between steps, mean "
           f"/ median; inside's median over the first {EARLY_STEPS} timed steps / the rest; slow: over twice the median "
-          "interval, and what they add to the mean; GPU queue: steps queued at a step's end, mean, early / late)")
+          f"interval, and what they add to the mean; GPU queue: mean steps queued at a step's end, first {EARLY_STEPS} "
+          "timed steps / the rest)")
     for label, fit_workers, anatomy in anatomies:
         inside, early_late, between, queued = (" / ".join("—" if math.isnan(value) else f"{value:.2f}" for value in pair)
                                                for pair in (anatomy["inside"], anatomy["inside_early_late"],

@@ -69,7 +69,8 @@ def time_epochs(dataset: SequenceDataset, make_batches, epochs: int = 1) -> tupl
 
 
 def restarting_workers(dataset: SequenceDataset) -> DataLoader:
-    """A DataLoader that starts its workers at every epoch (what `make_dataloader` did before issue 12)."""
+    """A DataLoader that starts its workers at every epoch, as `make_dataloader` did before issue 12: also with torch's
+    own hand-over of a batch (no shared-memory slots) and no pinning, as then."""
     return DataLoader(dataset, batch_size=None, num_workers=dataset.num_workers, persistent_workers=False,
                       worker_init_fn=functools.partial(init_worker, "normal", os.getpid()))
 
@@ -140,7 +141,8 @@ def main() -> None:
           f"hand-over {hand_over:.2f} ms, copy out of the slot {copy_out:.2f} ms); {process:.2f} ms of the "
           f"process's, all {os.cpu_count()} intra-op threads")
     for label, make_batches in (("workers started once", make_dataloader),
-                                ("workers restarted every epoch", restarting_workers)):
+                                ("the loader before issue 12 (workers restarted every epoch, torch's hand-over)",
+                                 restarting_workers)):
         dataset = SequenceDataset(shard_set(shards, "train"), num_workers=2,
                                   batches_per_worker=args.epoch_batches // 2, **settings)
         timing = time_epochs(dataset, make_batches, args.epochs)
