@@ -26,9 +26,10 @@ KEYS = ("obs", "action", "reward")
 
 
 def episode_files(directory: Path) -> list[Path]:
-    """The episode files a replay directory holds, oldest first (half-written ones, `.NAME.partial`, left out; and
-    `NAME.tmp.npz`, as runs before 2026-11-27 named them)."""
-    return sorted(p for p in Path(directory).glob("*.npz") if not p.name.endswith(".tmp.npz"))
+    """The episode files a replay directory holds, oldest first, by their number (from the millionth on it has 7
+    digits: sorted by name, it came before the 100,001st); half-written ones, `.NAME.partial`, left out, and
+    `NAME.tmp.npz`, as runs before 2026-11-27 named them. A file not named as a run names them is a ReplayError."""
+    return sorted((p for p in Path(directory).glob("*.npz") if not p.name.endswith(".tmp.npz")), key=episode_name)
 
 
 class ReplayError(RuntimeError):

@@ -64,6 +64,19 @@ def test_capacity_drops_the_oldest_episodes_and_disk_reload_keeps_the_newest(tmp
     assert (tmp_path / "000005-20.npz").exists()  # numbering continues after the reload
 
 
+def test_a_reload_past_the_millionth_episode_keeps_the_newest(tmp_path):
+    """Episode files sorted by name put 1000000 before 100001: a reload past the millionth episode took old ones
+    (found by a review)."""
+    replay = Replay(tmp_path, capacity=50, rng=np.random.default_rng(0))
+    replay.num_saved = 999_998  # as a long run's replay stands
+    for i in range(4):
+        replay.add(episode(i + 1, 20))
+    assert sorted(path.name for path in tmp_path.glob("*.npz"))[:2] == ["1000000-20.npz", "1000001-20.npz"]
+    reloaded = Replay(tmp_path, capacity=50, rng=np.random.default_rng(0))
+    assert reloaded.load(stored=1_000_002) == 2
+    assert [int(ep["obs"][0, 0, 0, 0]) for ep in reloaded.episodes] == [3, 4]
+
+
 def test_episodes_that_fill_the_capacity_exactly_are_all_kept_and_reloaded(tmp_path):
     """The capacity is the most steps held: episodes that sum to it exactly all stay, in memory and on reload."""
     replay = Replay(tmp_path, capacity=40, rng=np.random.default_rng(0))
