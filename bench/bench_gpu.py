@@ -5,8 +5,8 @@
         [--shards DIR] [--lengths 16 50] [--steps 40] [--workers 4] [--worker-priority idle] [--precision bf16-mixed]
 
 Bare step: PretrainModule's noise, observe + losses (`training_losses`, eager or through `model.compile`),
-backward (GradScaler under 16-mixed), unscale, clip, the fused Adam's step and λ's dual step — what
-`training_step` does, without Lightning — on batches read from the shards beforehand, in the config's
+backward (GradScaler under 16-mixed), unscale, clip, the fused Adam's step, the skip counters and λ's dual step —
+what `training_step` does, without Lightning and its logging every N steps — on batches read from the shards beforehand, in the config's
 precision. Per length: ms per step and steps/s (the mean of --steps steps after 3 warm-up steps), the wall
 time of the 3 warm-up steps (compiling, CUDA-graph recording), peak memory, and the process's CPU time per
 step, all threads ("host ms": near the wall time per step on a GPU, the step is bound by the host); on a GPU
@@ -338,7 +338,11 @@ def bare_steps(settings: dict, batches: Iterator[dict], compile_setting: str, st
             scaler.update()
         else:
             step_unless(world_model_opt, skip)
-        module.dual_step(dual_opt, terms["k_disagreement"], skip)
+        by_scaler = skip & torch.isfinite(terms["loss"]) & scaler.is_enabled()  # the fit's counters, as training_step
+        module.scaler_skips += by_scaler
+        module.nonfinite_steps += skip & ~by_scaler
+        if module.hcu_enabled:
+            module.dual_step(dual_opt, terms["k_disagreement"], skip)
 
     started = time.perf_counter()
     for index in range(warm_up):

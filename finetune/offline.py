@@ -47,7 +47,10 @@ class OfflineAgent(Agent):
         return self.penalty
 
     def finish_update(self) -> dict[str, torch.Tensor]:
-        return {**self.penalty.metrics, **self.penalty.imagined_metrics}
+        # the imagined metrics live in the compiled update's CUDA-graph memory: taken here, in the update that made
+        # them, and not kept (the next replay overwrites them)
+        imagined, self.penalty.imagined_metrics = self.penalty.imagined_metrics, {}
+        return {**self.penalty.metrics, **imagined}
 
 
 def train_offline(cfg: FinetuneConfig, pretrained: str | Path | None = None, progress: bool = True) -> dict[str, float]:
