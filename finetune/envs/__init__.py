@@ -29,11 +29,11 @@ if "MUJOCO_GL" not in os.environ and "mujoco" in sys.modules:
         "already and headless rendering may fail; set MUJOCO_GL=osmesa (or egl) before starting Python",
         stacklevel=2,
     )
-if "MUJOCO_GL" not in os.environ:
-    from finetune.envs.opengl import choose_mujoco_gl
+if "MUJOCO_GL" not in os.environ:  # chosen here, and PyOpenGL (mujoco's Python renderer) told the same: a
+    from finetune.envs.opengl import choose_mujoco_gl  # PYOPENGL_PLATFORM=egl of a GPU image on a CPU box
 
-    os.environ["MUJOCO_GL"] = choose_mujoco_gl()
-if os.environ["MUJOCO_GL"] in ("osmesa", "egl"):  # PyOpenGL (used by mujoco's Python renderer) must agree
+    os.environ["MUJOCO_GL"] = os.environ["PYOPENGL_PLATFORM"] = choose_mujoco_gl()  # broke every osmesa env
+elif os.environ["MUJOCO_GL"] in ("osmesa", "egl"):  # the user's: PyOpenGL must agree, unless they said otherwise
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ.setdefault("DISABLE_RENDER_THREAD_OFFLOADING", "1")
 if "triton" in sys.modules or importlib.util.find_spec("triton") is None:

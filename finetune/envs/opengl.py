@@ -26,7 +26,7 @@ from finetune.envs.base import EnvSettingError
 # draws one frame: a GL context alone "works" under glfw without a display, and rendering then fails
 RENDER_PROBE = ("import mujoco; model = mujoco.MjModel.from_xml_string('<mujoco/>'); renderer = mujoco.Renderer(model, 8, 8); "
                 "renderer.update_scene(mujoco.MjData(model)); renderer.render(); renderer.close()")
-CHECKED = "HAUWM_MUJOCO_GL_CHECKED"  # set once MUJOCO_GL is known to render; env worker processes inherit it
+CHECKED = "HAUWM_MUJOCO_GL_CHECKED"  # the platforms known to render (`platforms`); env worker processes inherit it
 
 
 class RenderingError(EnvSettingError):
@@ -60,16 +60,22 @@ def probe(platform: str, timeout: float = 60.0) -> str | None:
     return lines[-1] if lines else f"exit status {result.returncode}"
 
 
+def platforms() -> str:
+    """MUJOCO_GL and PYOPENGL_PLATFORM as they are now: what a check of rendering holds for (a child process started
+    with others must check again)."""
+    return f"{os.environ.get('MUJOCO_GL', '')}/{os.environ.get('PYOPENGL_PLATFORM', '')}"
+
+
 def check_rendering() -> None:
-    """Once per process tree: raise RenderingError if the MUJOCO_GL in force cannot render a frame."""
-    if os.environ.get(CHECKED):
+    """Once per process tree and platform: raise RenderingError if the MUJOCO_GL in force cannot render a frame."""
+    if os.environ.get(CHECKED) == platforms():
         return
     platform = os.environ.get("MUJOCO_GL", "")
     failure = probe(platform)
     if failure is not None:
         raise RenderingError(f"MuJoCo cannot render with MUJOCO_GL={platform!r} ({failure}): unset MUJOCO_GL and HAUWM "
                              "picks egl on an NVIDIA GPU where it works, osmesa elsewhere (Debian package libosmesa6)")
-    os.environ[CHECKED] = "1"
+    os.environ[CHECKED] = platforms()
 
 
 def choose_mujoco_gl() -> str:

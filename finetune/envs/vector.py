@@ -54,6 +54,7 @@ from pathlib import Path
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv, VectorEnv
 from gymnasium.vector.async_vector_env import _async_worker
 
+from finetune.envs.opengl import check_rendering
 from finetune.envs.registry import make_env, suite_module
 from hauwm.messages import killed_by
 
@@ -127,8 +128,15 @@ class WorkerEnvs(AsyncVectorEnv):
 
     # every call that talks to the workers (step and reset are an _async and a _wait); a _wait without a timeout
     # (the run's) gives up on a silent worker, one with a timeout (gymnasium's close) waits as asked
-    reset_async = naming_dead_workers(AsyncVectorEnv.reset_async)
     step_async = naming_dead_workers(AsyncVectorEnv.step_async)
+
+    @naming_dead_workers
+    def reset_async(self, seed: int | list[int | None] | None = None, options: dict | None = None):
+        if isinstance(seed, list):  # the seeds the reset envs play from now: those a failure names (a reseeding run)
+            mask = (options or {}).get("reset_mask")
+            self.seeds = [new if new is not None and (mask is None or mask[index]) else old
+                          for index, (old, new) in enumerate(zip(self.seeds, seed))]
+        return super().reset_async(seed=seed, options=options)
 
     @naming_dead_workers
     def reset_wait(self, timeout: float | None = None, **kwargs):
@@ -165,9 +173,10 @@ class WorkerEnvs(AsyncVectorEnv):
         try:
             yield
         except (EOFError, ConnectionError) as error:
-            dead = []
+            dead = []  # a pipe that closed: its process is ending; one wait for all (a second each made 64 envs' news
+            #            a minute late)
+            multiprocessing.connection.wait([process.sentinel for process in self.processes], timeout=1.0)
             for index, process in enumerate(self.processes):
-                process.join(timeout=1.0)  # a pipe that closed: its process is ending
                 if process.exitcode is not None:
                     dead.append(f"env worker {index} of {self.name} (seed {self.seeds[index]}, pid {process.pid}) "
                                 f"died: {death_cause(process.exitcode)}")
@@ -186,6 +195,7 @@ def make_vector_env(name: str, seeds: list[int], pin: bool = True, stopping: Cal
     if len(seeds) == 1:
         return SyncVectorEnv([functools.partial(make_env, name, seed=seeds[0], **kwargs)],
                              autoreset_mode=AutoresetMode.SAME_STEP)
+    check_rendering()  # here, once: the fork server and the workers inherit the answer instead of each probing it
     context = multiprocessing.get_context(START_METHOD)
     if START_METHOD == "forkserver":  # takes effect when the fork server starts (the first vector env of a process)
         context.set_forkserver_preload(forkserver_preload(name))

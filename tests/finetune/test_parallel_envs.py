@@ -196,6 +196,27 @@ def test_a_users_mujoco_gl_wins(user_setting):
     assert out.split() == [user_setting, user_setting]
 
 
+def test_a_pyopengl_platform_of_the_image_follows_the_mujoco_gl_chosen():
+    """PYOPENGL_PLATFORM=egl (GPU images set it) on a machine where osmesa was chosen broke every env with a message to
+    unset MUJOCO_GL, which was not set (found by a review): HAUWM's choice of MUJOCO_GL now sets both."""
+    env = {key: value for key, value in os.environ.items() if key not in ("MUJOCO_GL", opengl.CHECKED)}
+    env["PYOPENGL_PLATFORM"] = "egl" if not opengl.nvidia_gpu_visible() else "osmesa"  # the other one
+    code = "import os, finetune.envs; print(os.environ['MUJOCO_GL'], os.environ['PYOPENGL_PLATFORM'])"
+    chosen, pyopengl = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                                      check=True).stdout.split()
+    assert chosen == pyopengl
+
+
+def test_a_rendering_check_holds_only_for_the_platforms_it_checked(monkeypatch):
+    """The mark of a check was "1", inherited by every child: one started with another MUJOCO_GL skipped the check and
+    failed deep inside MuJoCo (found by a review)."""
+    monkeypatch.setenv(opengl.CHECKED, "1")  # as a parent checked under osmesa wrote it
+    monkeypatch.setenv("MUJOCO_GL", "bogus")
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
+    with pytest.raises(opengl.RenderingError, match="MuJoCo cannot render with MUJOCO_GL='bogus'"):
+        opengl.check_rendering()
+
+
 # Every env worker fails to build its env, as each did with EGL_BAD_ALLOC on an H200 before forkserver_preload: the
 # script's top level runs again in the fork server (a process other than the parent), where it breaks make_env.
 WORKERS_FAIL = """
@@ -324,6 +345,19 @@ if __name__ == "__main__":
     envs.step_async(np.zeros((4, 1), np.float32))
     os.kill(os.getpid(), signal.SIGKILL)
 """
+
+
+def test_a_dead_env_worker_is_named_with_the_seed_of_its_episode_after_a_reseeding_reset():
+    """A reseeding run (imitation) resets its envs with each episode's seed: a worker that died was named with the seed
+    it was built with, which does not reproduce its episode (found by a review)."""
+    envs = make_vector_env("dmc_cartpole_swingup", [0, 7], pin=False, fast_render=True, time_limit=3)
+    with pytest.raises(EnvWorkerError, match=r"env worker 1 of dmc_cartpole_swingup \(seed 123, pid \d+\) died"), \
+            closing_envs(envs):
+        envs.reset(seed=[5, 123])
+        envs.reset(seed=[9, 456], options={"reset_mask": np.array([True, False])})  # env 1 plays on from 123
+        os.kill(envs.processes[1].pid, signal.SIGKILL)
+        envs.processes[1].join()
+        envs.step(np.zeros((2, 1), np.float32))
 
 
 def test_env_workers_whose_learner_is_killed_end_at_once_and_without_a_word(tmp_path):
