@@ -29,11 +29,13 @@ if "MUJOCO_GL" not in os.environ and "mujoco" in sys.modules:
         "already and headless rendering may fail; set MUJOCO_GL=osmesa (or egl) before starting Python",
         stacklevel=2,
     )
-if "MUJOCO_GL" not in os.environ:  # chosen here, and PyOpenGL (mujoco's Python renderer) told the same: a
-    from finetune.envs.opengl import choose_mujoco_gl  # PYOPENGL_PLATFORM=egl of a GPU image on a CPU box
+if "MUJOCO_GL" not in os.environ:
+    from finetune.envs.opengl import choose_mujoco_gl
 
-    os.environ["MUJOCO_GL"] = os.environ["PYOPENGL_PLATFORM"] = choose_mujoco_gl()  # broke every osmesa env
-elif os.environ["MUJOCO_GL"] in ("osmesa", "egl"):  # the user's: PyOpenGL must agree, unless they said otherwise
+    # chosen here: PyOpenGL (mujoco's Python renderer) is told the same platform, over one already set (a GPU image's
+    # PYOPENGL_PLATFORM=egl on a CPU box broke every osmesa env)
+    os.environ["MUJOCO_GL"] = os.environ["PYOPENGL_PLATFORM"] = choose_mujoco_gl()
+elif os.environ["MUJOCO_GL"] in ("osmesa", "egl"):  # the user's own: PyOpenGL must agree, unless they set it too
     os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ.setdefault("DISABLE_RENDER_THREAD_OFFLOADING", "1")
 if "triton" in sys.modules or importlib.util.find_spec("triton") is None:
