@@ -36,6 +36,8 @@ steps the GPU had queued at a step's end (about 0: it has finished the step and 
 is behind the host, which blocks in a launch once CUDA's queue is full).
 Last, where a fit step's time goes (StepDiagnosis, one more short fit on long epochs): the operations that make
 the host wait for the GPU, by call site; the host's time inside and between steps; a profiled window.
+At the end, the graphs compiled over the whole bench and the CUDA-graph skips (a compiled graph run without its
+CUDA graph: none expected).
 Shards: built from `hauwm shards sample-data --clips 344` in a temporary directory, or --shards DIR.
 """
 
@@ -64,6 +66,7 @@ from pathlib import Path
 import lightning as L
 import torch
 import yaml
+from torch._dynamo.utils import counters
 from torch.utils.data import DataLoader
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -648,7 +651,10 @@ def main() -> None:
     except Exception as error:  # noqa: BLE001 — a diagnostic, reported, never fatal
         print(f"\nwhere a fit step's time goes: failed ({type(error).__name__}: {error})")
 
-    print(f"\nwall time {time.perf_counter() - started:.0f} s; load average {os.getloadavg()[0]:.1f} at the end")
+    print(f"\ncompiling, the whole bench: {counters['stats']['unique_graphs']} graphs compiled (each compiled step "
+          f"compiles its own), {counters['inductor']['cudagraph_skips']} CUDA-graph skips (a compiled graph run "
+          "without its CUDA graph under reduce-overhead: more than 0 is a finding)")
+    print(f"wall time {time.perf_counter() - started:.0f} s; load average {os.getloadavg()[0]:.1f} at the end")
 
 
 if __name__ == "__main__":
