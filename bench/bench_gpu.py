@@ -341,9 +341,7 @@ def bare_steps(settings: dict, batches: Iterator[dict], compile_setting: str, st
             scaler.update()
         else:
             step_unless(world_model_opt, skip)
-        by_scaler = skip & torch.isfinite(terms["loss"]) & scaler.is_enabled()  # the fit's counters, as training_step
-        module.scaler_skips += by_scaler
-        module.nonfinite_steps += skip & ~by_scaler
+        module.count_skip(skip, torch.isfinite(terms["loss"]), scaled=scaler.is_enabled())
         if module.hcu_enabled:
             module.dual_step(dual_opt, terms["k_disagreement"], skip)
 

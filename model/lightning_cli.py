@@ -68,10 +68,15 @@ def checkpoint_dir(root_dir: str | None) -> Path:
     return Path(root_dir or ".").expanduser() / "checkpoints"
 
 
+def names_a(class_path: str, kind: type) -> bool:
+    """Whether a config's class path names `kind` or a subclass of it."""
+    named = pydoc.locate(class_path)
+    return isinstance(named, type) and issubclass(named, kind)
+
+
 def names_a_model_checkpoint(callback: object) -> bool:
     """Whether a config's callback entry (a class_path and its init_args) is a ModelCheckpoint or a subclass of it."""
-    named = pydoc.locate(str(getattr(callback, "class_path", "")))
-    return isinstance(named, type) and issubclass(named, ModelCheckpoint)
+    return names_a(str(getattr(callback, "class_path", "")), ModelCheckpoint)
 
 
 def last_checkpoint(trainer_config) -> Path:
@@ -327,9 +332,8 @@ def settle_trainer(trainer, subcommand: str, resuming: bool) -> None:
                               "configs/pretrain/*.yaml in the list", file=sys.stderr)
     plugins = trainer.plugins if isinstance(trainer.plugins, list) else [trainer.plugins]
     for plugin in filter(None, plugins):  # Lightning refused the pair with a ValueError in a traceback
-        plugin_class = pydoc.locate(str(getattr(plugin, "class_path", plugin)))
-        if isinstance(plugin_class, type) and issubclass(plugin_class, Precision):
-            raise ConfigError(f"--trainer.plugins {plugin_class.__name__}: a fit's precision plugin is the one "
+        if names_a(class_path := str(getattr(plugin, "class_path", plugin)), Precision):
+            raise ConfigError(f"--trainer.plugins {class_path.rsplit('.', 1)[-1]}: a fit's precision plugin is the one "
                               f"--trainer.precision makes ({', '.join(PRECISIONS[::2])}); leave the plugin out")
     trainer.precision = trainer.precision or "32-true"  # None: Lightning's default
     if str(trainer.precision) not in PRECISIONS:  # half-precision weights: the step's float32 state breaks

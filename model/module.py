@@ -270,10 +270,7 @@ class PretrainModule(L.LightningModule):
             #                 a skip, which every rank must count as non-finite, not as the scaler's
             nonfinite, k_disagreement = mean_over_ranks(torch.stack([(~loss_finite).float(), k_disagreement.float()]))
             loss_finite = nonfinite == 0
-        # skipped with a finite loss under 16-mixed: GradScaler's float16 overflow at its current scale
-        by_scaler = self._skip & loss_finite & (self._grad_scaler() is not None)
-        self.scaler_skips += by_scaler
-        self.nonfinite_steps += self._skip & ~by_scaler
+        self.count_skip(self._skip, loss_finite, scaled=self._grad_scaler() is not None)
         if self.hcu_enabled:
             self.dual_step(dual_opt.optimizer, k_disagreement, self._skip)
         if log_now:  # every trainer.log_every_n_steps: reading the values waits for the GPU
@@ -283,6 +280,13 @@ class PretrainModule(L.LightningModule):
             logged["train/scaler_skips"] = self.scaler_skips.float()
             logged["train/nonfinite_steps"] = self.nonfinite_steps.float()
             self.log_dict(logged, on_step=True, on_epoch=False, batch_size=batch["frames"].shape[0])
+
+    def count_skip(self, skip: torch.Tensor, loss_finite: torch.Tensor, scaled: bool) -> None:
+        """Advance the skip counters on the device for a step flagged `skip`: a scaler skip where the loss was finite
+        under GradScaler (`scaled`: its float16 overflow at its current scale), a non-finite step otherwise."""
+        by_scaler = skip & loss_finite & scaled
+        self.scaler_skips += by_scaler
+        self.nonfinite_steps += skip & ~by_scaler
 
     def _grad_scaler(self) -> torch.amp.GradScaler | None:
         """The 16-mixed grad scaler of the Trainer, None under other precisions."""
